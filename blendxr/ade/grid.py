@@ -1,0 +1,167 @@
+"""The ADE grid and the maps from a flow grid onto it.
+
+The ADE grid is uniform and cell-centred, covers the flow grid's extent and adds one
+empty cell on every side (kernels never update the outermost layer). Fields move from
+the flow grid to the ADE grid by separable linear interpolation (trilinear in 3-D).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["AdeGrid", "AxisMap", "interpolate", "extend_into_empty"]
+
+
+@dataclass(frozen=True)
+class AdeGrid:
+    """A uniform cell-centred grid.
+
+    Attributes
+    ----------
+    coords : tuple of ndarray
+        Cell centres along x, y (and z), metres.
+    spacing : tuple of float
+        Cell size along each axis, metres.
+    """
+
+    coords: tuple
+    spacing: tuple
+
+    @property
+    def ndim(self) -> int:
+        return len(self.coords)
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(len(c) for c in self.coords)
+
+    @property
+    def dims(self) -> tuple:
+        return ("x", "y", "z")[: self.ndim]
+
+    @property
+    def cell_volume(self) -> float:
+        return float(np.prod(self.spacing))
+
+    @classmethod
+    def covering(cls, lows, highs, cells) -> AdeGrid:
+        """A grid over the box [lows, highs] plus one padding cell on every side.
+
+        Parameters
+        ----------
+        lows, highs : sequence of float
+            The box to cover, per axis.
+        cells : int or sequence of int
+            An int gives cubic cells, that many along the longest axis; a sequence gives
+            the number of cells per axis.
+        """
+        lows = np.asarray(lows, float)
+        highs = np.asarray(highs, float)
+        lengths = highs - lows
+        if np.isscalar(cells) or np.ndim(cells) == 0:
+            h = float(lengths.max()) / int(cells)
+            counts = np.maximum(np.ceil(lengths / h - 1e-9).astype(int), 1)
+            spacing = np.full(len(lengths), h)
+        else:
+            counts = np.asarray(cells, int)
+            if counts.shape != lengths.shape:
+                raise ValueError(
+                    f"cells: {len(counts)} values given for a {len(lengths)}-D flow"
+                )
+            spacing = lengths / counts
+        coords = []
+        for lo, length, n, h in zip(lows, lengths, counts, spacing, strict=True):
+            centre = lo + 0.5 * length
+            # n cells centred on the box, plus one padding cell each side
+            first = centre - 0.5 * (n - 1) * h - h
+            coords.append(first + h * np.arange(n + 2))
+        return cls(tuple(coords), tuple(float(h) for h in spacing))
+
+
+@dataclass(frozen=True)
+class AxisMap:
+    """Linear interpolation weights from one source axis onto one target axis."""
+
+    lower: np.ndarray  # source index below each target point
+    weight: np.ndarray  # weight of the upper neighbour
+    inside: np.ndarray  # target point lies within the source grid's cells
+
+    @classmethod
+    def between(cls, source: np.ndarray, target: np.ndarray) -> AxisMap:
+        source = np.asarray(source, float)
+        n = len(source)
+        h = source[1] - source[0]
+        s = (np.asarray(target, float) - source[0]) / h
+        inside = (s >= -0.5 - 1e-9) & (s <= n - 0.5 + 1e-9)
+        s = np.clip(s, 0.0, n - 1.0)
+        lower = np.minimum(np.floor(s).astype(np.intp), n - 2)
+        return cls(lower, s - lower, inside)
+
+
+def interpolate(values: np.ndarray, maps: tuple) -> np.ndarray:
+    """Separable linear interpolation of a source array through per-axis maps.
+
+    Points beyond the outermost source centres take the nearest value (constant
+    extrapolation), which is what cell-centred data means up to the cell faces.
+    """
+    out = np.asarray(values, float)
+    for axis, m in enumerate(maps):
+        lo = np.take(out, m.lower, axis=axis)
+        hi = np.take(out, m.lower + 1, axis=axis)
+        shape = [1] * out.ndim
+        shape[axis] = len(m.weight)
+        w = m.weight.reshape(shape)
+        out = lo + w * (hi - lo)
+    return out
+
+
+def inside_mask(maps: tuple) -> np.ndarray:
+    """Target cells whose centre lies within the source grid's extent."""
+    mask = np.ones([len(m.inside) for m in maps], bool)
+    for axis, m in enumerate(maps):
+        shape = [1] * len(maps)
+        shape[axis] = len(m.inside)
+        mask &= m.inside.reshape(shape)
+    return mask
+
+
+def extend_into_empty(field: np.ndarray, known: np.ndarray, allowed: np.ndarray, layers: int = 2):
+    """Extend a field from known cells into neighbouring unknown cells, layer by layer.
+
+    Each new layer takes the mean of its known face neighbours. Velocities are extended a
+    couple of cells beyond the material so that face velocities at a free surface are
+    those of the material, not half of them, and so that linear interpolation onto a finer
+    grid does not drag the surface velocity towards zero.
+
+    Parameters
+    ----------
+    field : ndarray
+        Values, trusted where ``known``.
+    known, allowed : ndarray of bool
+        Cells with trusted values; cells that may receive extended values (the vessel).
+    layers : int
+        How many cell layers to extend.
+    """
+    out = np.where(known, field, 0.0)
+    known = known.copy()
+    for _ in range(layers):
+        total = np.zeros_like(out)
+        count = np.zeros(out.shape)
+        for axis in range(out.ndim):
+            for shift in (1, -1):
+                rolled_v = np.roll(out, shift, axis=axis)
+                rolled_k = np.roll(known, shift, axis=axis)
+                # no wrap-around: the rolled-in edge slice is not a neighbour
+                edge = [slice(None)] * out.ndim
+                edge[axis] = 0 if shift == 1 else -1
+                rolled_k[tuple(edge)] = False
+                total += np.where(rolled_k, rolled_v, 0.0)
+                count += rolled_k
+        new = (~known) & allowed & (count > 0)
+        if not new.any():
+            break
+        out[new] = total[new] / count[new]
+        known = known | new
+    return out

@@ -1,0 +1,177 @@
+"""Cyclic reading of a stored revolution: a sliding window of prepared phases.
+
+A flow dataset stores one revolution in ``rev_phase`` bins. The stepper needs, at any
+time t, the fields at the two phases that bracket t (cyclically) and blends them
+linearly. :class:`CyclicPhaseReader` reads a phase from the (lazy) dataset only when it is
+first needed, prepares it once (diffusivity of eq. 5 on the flow grid, then interpolation
+onto the ADE grid), keeps a small window of prepared phases, and prefetches the next phase
+in a background thread while the kernels work on the current pair. When the whole
+prepared revolution fits the memory budget it is kept, so later revolutions read nothing.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from .diffusivity import shear_diffusivity
+from .grid import AdeGrid, AxisMap, extend_into_empty, inside_mask, interpolate
+
+__all__ = ["PreparedPhase", "CyclicPhaseReader"]
+
+_VELOCITY_NAMES = ("vx", "vy", "vz")
+
+
+@dataclass
+class PreparedPhase:
+    """One stored phase on the ADE grid, ready for the kernels."""
+
+    index: int
+    velocities: tuple  # ndim arrays, m/s
+    diffusivities: tuple | None  # ndim arrays, m2/s, or None when no diffusion
+    fill: np.ndarray  # material volume fraction
+
+    @property
+    def nbytes(self) -> int:
+        arrays = list(self.velocities) + list(self.diffusivities or ()) + [self.fill]
+        return sum(a.nbytes for a in arrays)
+
+
+class CyclicPhaseReader:
+    """Serve prepared flow phases cyclically, reading each from the dataset lazily.
+
+    Parameters
+    ----------
+    flow : xarray.Dataset
+        A flow dataset (may be dask-backed).
+    grid : AdeGrid
+        The ADE grid.
+    diffusion : callable or tuple or None
+        ``None``: no diffusion. A tuple of constants: a constant diagonal diffusivity (m2/s).
+        A callable ``(velocities, fill, spacing) -> tuple of arrays``: diffusivity on the
+        flow grid (eq. 5).
+    memory_budget : float
+        Bytes that prepared phases may occupy. If the whole revolution fits, every phase
+        is kept after its first use; otherwise a window of three (current pair + prefetch).
+    prefetch : bool
+        Prepare the next phase in a background thread.
+    """
+
+    def __init__(self, flow, grid: AdeGrid, diffusion, memory_budget: float, prefetch=True):
+        self.flow = flow
+        self.grid = grid
+        self.ndim = grid.ndim
+        self.n_phases = flow.sizes["rev_phase"]
+        self._diffusion = diffusion
+        flow_coords = [np.asarray(flow[d].values, float) for d in grid.dims]
+        self._flow_spacing = tuple(float(c[1] - c[0]) for c in flow_coords)
+        self._maps = tuple(
+            AxisMap.between(src, dst) for src, dst in zip(flow_coords, grid.coords, strict=True)
+        )
+        self._inside = inside_mask(self._maps)
+        vessel_flow = np.asarray(flow["vessel"].values) > 0
+        self._vessel_flow = vessel_flow
+        self.vessel = (interpolate(vessel_flow.astype(float), self._maps) >= 0.5) & self._inside
+        per_phase = (2 * self.ndim + 1) * np.prod(grid.shape) * 8
+        self.keep_all = per_phase * self.n_phases <= memory_budget
+        self._window = 3
+        self._cache: OrderedDict[int, PreparedPhase] = OrderedDict()
+        self._pending: dict[int, Future] = {}
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=1) if prefetch and self.n_phases > 2 else None
+        self.phases_read = 0
+
+    # reading and preparing -------------------------------------------------
+    def _read(self, k: int):
+        snap = self.flow.isel(rev_phase=k)
+        names = ["fill", *_VELOCITY_NAMES[: self.ndim]]
+        arrays = {n: np.asarray(snap[n].values, float) for n in names}
+        self.phases_read += 1
+        for name, values in arrays.items():
+            bad = ~np.isfinite(values)
+            if bad.any():
+                cell = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise ValueError(f"flow variable {name} is not finite at rev_phase index {k}, cell {cell}")
+        return arrays
+
+    def _prepare(self, k: int) -> PreparedPhase:
+        arrays = self._read(k)
+        fill = np.clip(arrays["fill"], 0.0, 1.0)
+        material = fill > 0
+        velocities = tuple(arrays[n] for n in _VELOCITY_NAMES[: self.ndim])
+        if callable(self._diffusion):
+            d_flow = self._diffusion(velocities, fill, self._flow_spacing)
+            diffusivities = tuple(
+                interpolate(extend_into_empty(d, material, self._vessel_flow), self._maps)
+                for d in d_flow
+            )
+        elif self._diffusion is None:
+            diffusivities = None
+        else:
+            diffusivities = tuple(
+                np.where(self.vessel, float(value), 0.0) for value in self._diffusion
+            )
+        velocities_ade = tuple(
+            np.where(
+                self.vessel,
+                interpolate(extend_into_empty(v, material, self._vessel_flow), self._maps),
+                0.0,
+            )
+            for v in velocities
+        )
+        fill_ade = np.where(self.vessel, np.clip(interpolate(fill, self._maps), 0.0, 1.0), 0.0)
+        if diffusivities is not None:
+            diffusivities = tuple(np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities)
+        return PreparedPhase(k, velocities_ade, diffusivities, fill_ade)
+
+    def get(self, k: int) -> PreparedPhase:
+        """The prepared phase ``k`` (cyclic), reading it if needed; prefetches ``k + 1``."""
+        k %= self.n_phases
+        with self._lock:
+            phase = self._cache.get(k)
+            future = self._pending.pop(k, None)
+        if phase is None:
+            phase = future.result() if future is not None else self._prepare(k)
+            with self._lock:
+                self._cache[k] = phase
+                if not self.keep_all:
+                    while len(self._cache) > self._window:
+                        self._cache.popitem(last=False)
+        else:
+            with self._lock:
+                self._cache.move_to_end(k)
+        self._prefetch((k + 1) % self.n_phases)
+        return phase
+
+    def _prefetch(self, k: int) -> None:
+        if self._pool is None:
+            return
+        with self._lock:
+            if k in self._cache or k in self._pending:
+                return
+            self._pending[k] = self._pool.submit(self._prepare, k)
+
+    def close(self) -> None:
+        """Stop the prefetch thread."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def bracket(self, phase_position: float):
+        """The two phases around a position in phase-index units and the weight of the second.
+
+        Parameters
+        ----------
+        phase_position : float
+            rev_phase · n_phases (may exceed n_phases: taken cyclically).
+        """
+        if self.n_phases == 1:
+            p = self.get(0)
+            return p, p, 0.0
+        k = int(np.floor(phase_position + 1e-12))
+        w = min(max(phase_position - k, 0.0), 1.0)
+        return self.get(k), self.get(k + 1), w

@@ -1,0 +1,732 @@
+"""The time loop of the advection-diffusion equation: ``mix``.
+
+The driver maps a labelled flow dataset onto plain arrays for the kernels and labels
+what comes back. Per interval between two stored phases it chooses a stable dt from the
+scheme's limits, blends the two bracketing phases linearly in time at each step's
+midpoint, calls the kernel, and at output times reduces the concentration to the mixing
+curves. Time t runs from 0; the stored revolution repeats with period T = 60 / rpm.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time as wallclock
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from .. import metrics
+from .._version import __version__
+from ..schema import mixing_dataset, validate
+from ..scene import Scene, load_scene
+from . import kernels, stability
+from .diffusivity import shear_diffusivity
+from .grid import AdeGrid
+from .phases import CyclicPhaseReader
+
+__all__ = ["SCHEMES", "LOADINGS", "MixSettings", "mix", "BlowUpError"]
+
+SCHEMES = ("finite-volume", "lax-wendroff")
+LOADINGS = ("top-bottom", "axial", "transverse", "side-side", "left-right")
+_ALIASES = {"side-side": "axial", "left-right": "axial"}
+
+# LW treats a cell as material when its interpolated fill reaches this fraction.
+MATERIAL_THRESHOLD = 0.5
+# FV: c is defined where the carried material fraction exceeds this.
+M_MIN = 1e-9
+# How far outside [0, 1] a value may stray (round-off) before the run is stopped.
+BOUND_TOLERANCE = 1e-6
+
+
+class BlowUpError(FloatingPointError):
+    """The concentration became non-finite or left [0, 1]: the run is stopped."""
+
+
+@dataclass
+class MixSettings:
+    """Resolved settings of one ADE run (scene values overridden by keyword arguments)."""
+
+    scheme: str = "finite-volume"
+    initial: object = "top-bottom"
+    k1: float = 0.01
+    k2: float | None = None
+    d: float = 0.012
+    diffusivity: tuple | None = None
+    revolutions: float = 10.0
+    cells: object = 100
+    output_every: float = 0.25
+    snapshots: tuple | None = None
+    sampling_cell: float | None = None
+    packing: float = 0.6
+    safety: float = 0.9
+    dt: float | None = None
+    memory_budget_mb: float = 1024.0
+    progress: bool | None = None
+    checkpoint: str | None = None
+    checkpoint_every: float = 1.0
+    resume: bool = True
+    wall_time: float | None = None
+    max_steps: int | None = None
+    check_every: int = 25
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        faults = []
+        if self.scheme not in SCHEMES:
+            faults.append(f"scheme {self.scheme!r} is unknown; allowed: {', '.join(SCHEMES)}")
+        for name in ("k1", "d", "revolutions", "output_every", "safety"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value)):
+                faults.append(f"{name} must be a finite number, got {value!r}")
+            elif value < 0 or (value == 0 and name != "k1"):
+                allowed = ">= 0" if name == "k1" else "> 0"
+                faults.append(f"{name} = {value!r} is out of range; allowed: {allowed}")
+        if self.k2 is not None and not (self.k2 >= 0):
+            faults.append(f"k2 = {self.k2!r} is out of range; allowed: >= 0")
+        if self.safety > 1:
+            faults.append(f"safety = {self.safety!r} is out of range; allowed: (0, 1]")
+        if self.dt is not None and not (self.dt > 0):
+            faults.append(f"dt = {self.dt!r} is out of range; allowed: > 0")
+        if isinstance(self.initial, str) and self.initial not in LOADINGS:
+            faults.append(
+                f"initial loading {self.initial!r} is unknown; allowed: {', '.join(LOADINGS)}"
+                " or a DataArray of c"
+            )
+        if self.diffusivity is not None:
+            values = np.atleast_1d(np.asarray(self.diffusivity, float))
+            if not np.all(np.isfinite(values)) or np.any(values < 0):
+                faults.append(f"diffusivity = {self.diffusivity!r}: needs finite values >= 0")
+        if faults:
+            raise ValueError("; ".join(faults))
+        if self.k2 is None:
+            self.k2 = 1.9 * self.k1
+
+    def fingerprint(self) -> str:
+        """A hash of the settings that change the answer (for safe resumption)."""
+        keep = asdict(self)
+        for name in ("progress", "checkpoint", "checkpoint_every", "resume", "wall_time",
+                     "max_steps", "memory_budget_mb", "extra"):
+            keep.pop(name)
+        if not isinstance(keep["initial"], str):
+            c0 = np.asarray(self.initial)
+            keep["initial"] = hashlib.sha1(np.ascontiguousarray(c0).tobytes()).hexdigest()
+        return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
+    values: dict = {}
+    if scene is not None:
+        mixing, numerics, material = scene["mixing"], scene["numerics"], scene["material"]
+        values.update(
+            scheme=numerics["scheme"],
+            initial=mixing["loading"],
+            k1=mixing["k1"],
+            k2=mixing.get("k2"),
+            d=material["particle_diameter"],
+            revolutions=mixing["revolutions"],
+            cells=numerics["cells"],
+            output_every=mixing["output_every"],
+            snapshots=tuple(mixing["snapshots"]) if "snapshots" in mixing else None,
+            sampling_cell=mixing.get("sampling_cell"),
+            packing=material["packing_fraction"],
+            safety=numerics["safety"],
+            memory_budget_mb=numerics["memory_budget_mb"],
+        )
+    known = set(MixSettings.__dataclass_fields__) - {"extra"}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise TypeError(f"mix() got unknown keyword(s) {unknown}; known: {sorted(known)}")
+    values.update(overrides)
+    return MixSettings(**values)
+
+
+# ----------------------------------------------------------------------------- state
+
+
+class _State:
+    """The prognostic fields of a scheme and their double buffers."""
+
+    def __init__(self, scheme: str, shape: tuple):
+        self.scheme = scheme
+        self.shape = shape
+        if scheme == "finite-volume":
+            self.m = np.zeros(shape)
+            self.q = np.zeros(shape)
+            self.m_next = np.zeros(shape)
+            self.q_next = np.zeros(shape)
+            self.work = kernels.fv_workspace(shape)
+        else:
+            self.c = np.zeros(shape)
+            self.c_next = np.zeros(shape)
+        self.reverse = False
+
+    def arrays(self) -> dict:
+        if self.scheme == "finite-volume":
+            return {"m": self.m, "q": self.q}
+        return {"c": self.c}
+
+    def load(self, arrays: dict) -> None:
+        for name, values in arrays.items():
+            getattr(self, name)[...] = values
+
+
+class _Fields:
+    """The flow fields at the current step time, on the ADE grid (reused buffers)."""
+
+    def __init__(self, ndim: int, shape: tuple, with_diffusion: bool, with_fill: bool):
+        self.velocities = tuple(np.zeros(shape) for _ in range(ndim))
+        self.diffusivities = (
+            tuple(np.zeros(shape) for _ in range(ndim)) if with_diffusion else None
+        )
+        self.fill = np.zeros(shape) if with_fill else None
+        self.material = np.zeros(shape, np.uint8) if with_fill else None
+        self._key = None
+
+    def blend(self, a, b, w: float) -> None:
+        """Fields at weight w between prepared phases a and b."""
+        key = (a.index, b.index, w if a is not b else 0.0)
+        if key == self._key:
+            return
+        self._key = key
+
+        def mix_into(out, x, y):
+            if w == 0.0 or x is y:
+                np.copyto(out, x)
+            else:
+                np.subtract(y, x, out=out)
+                out *= w
+                out += x
+
+        for out, x, y in zip(self.velocities, a.velocities, b.velocities, strict=True):
+            mix_into(out, x, y)
+        if self.diffusivities is not None:
+            for out, x, y in zip(self.diffusivities, a.diffusivities, b.diffusivities, strict=True):
+                mix_into(out, x, y)
+        if self.fill is not None:
+            mix_into(self.fill, a.fill, b.fill)
+            np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
+
+
+# ----------------------------------------------------------------------------- set-up
+
+
+def _initial_concentration(settings: MixSettings, grid: AdeGrid, fill0: np.ndarray) -> np.ndarray:
+    """c at t = 0 from a loading name or a user DataArray (DESIGN §2 loadings)."""
+    if not isinstance(settings.initial, str):
+        c0 = settings.initial
+        if not isinstance(c0, xr.DataArray):
+            raise TypeError("initial must be a loading name or an xarray.DataArray of c")
+        missing = [d for d in grid.dims if d not in c0.dims]
+        if missing:
+            raise ValueError(f"initial: the DataArray lacks dims {missing}")
+        target = {d: xr.DataArray(c, dims=d) for d, c in zip(grid.dims, grid.coords, strict=True)}
+        linear = c0.interp(target, method="linear")
+        nearest = c0.interp(target, method="nearest", kwargs={"fill_value": None})
+        values = linear.fillna(nearest).transpose(*grid.dims).values
+        values = np.nan_to_num(values, nan=0.5)
+        if np.nanmin(values) < -BOUND_TOLERANCE or np.nanmax(values) > 1 + BOUND_TOLERANCE:
+            raise ValueError("initial: c must lie in [0, 1]")
+        return np.clip(values, 0.0, 1.0)
+    loading = _ALIASES.get(settings.initial, settings.initial)
+    if loading == "axial" and grid.ndim == 2:
+        raise ValueError("initial 'axial' splits along z: a 2-D scene has no z; use 'transverse'")
+    axis = {"top-bottom": 1, "transverse": 0, "axial": 2}[loading]
+    centres = grid.coords[axis]
+    h = grid.spacing[axis]
+    if loading == "top-bottom":
+        # the plane that puts half of the material volume above it
+        profile = fill0.sum(axis=tuple(a for a in range(grid.ndim) if a != axis))
+        cumulative = np.cumsum(profile) / profile.sum()
+        j = int(np.searchsorted(cumulative, 0.5))
+        below = cumulative[j - 1] if j > 0 else 0.0
+        frac = (0.5 - below) / max(profile[j] / profile.sum(), 1e-300)
+        split = centres[j] - 0.5 * h + frac * h
+        above = np.clip((centres + 0.5 * h - split) / h, 0.0, 1.0)  # species A on top
+        line = above
+    else:
+        line = np.clip((0.0 - (centres - 0.5 * h)) / h, 0.0, 1.0)  # species A at x<0 / z<0
+    shape = [1] * grid.ndim
+    shape[axis] = len(line)
+    return np.broadcast_to(line.reshape(shape), grid.shape).astype(float)
+
+
+def _event_times(settings: MixSettings, period: float):
+    total = settings.revolutions
+    outputs = np.arange(0.0, total + 1e-9, settings.output_every)
+    if outputs[-1] < total - 1e-9:
+        outputs = np.append(outputs, total)
+    if settings.snapshots is None:
+        whole = np.arange(0, math.floor(total + 1e-9) + 1)
+        if len(whole) > 11:
+            whole = np.unique(np.round(np.linspace(0, total, 11)))
+        snaps = np.union1d(whole, [total])
+    else:
+        snaps = np.asarray(sorted(set(settings.snapshots)), float)
+        if len(snaps) and snaps.max() > total + 1e-9:
+            raise ValueError(f"snapshots: {snaps.max()} is beyond revolutions = {total}")
+    return outputs, snaps
+
+
+def _resolve_flow(flow, scene):
+    from ..io import open_flow
+
+    if isinstance(flow, str | os.PathLike):
+        flow = open_flow(flow)
+    elif isinstance(flow, xr.Dataset):
+        validate(flow)
+    else:
+        raise TypeError("flow must be a flow dataset or a path to a netCDF flow file")
+    if scene is None and flow.attrs.get("scene"):
+        try:
+            scene = load_scene(flow.attrs["scene"])
+        except ValueError:
+            scene = None
+    elif scene is not None:
+        scene = load_scene(scene)
+    return flow, scene
+
+
+# ----------------------------------------------------------------------------- run
+
+
+class _Run:
+    """One ADE run: grid, reader, state, clocks, recorded outputs."""
+
+    def __init__(self, flow, scene, settings: MixSettings):
+        self.flow = flow
+        self.scene = scene
+        self.settings = s = settings
+        self.ndim = 3 if "z" in flow.dims else 2
+        rpm = float(flow.attrs["rpm"])
+        if rpm <= 0:
+            raise ValueError("the flow's rpm must be > 0 to define a revolution for mixing")
+        self.period = 60.0 / rpm
+        coords = [np.asarray(flow[d].values, float) for d in ("x", "y", "z")[: self.ndim]]
+        for name, c in zip(("x", "y", "z"), coords, strict=False):
+            if len(c) < 2:
+                raise ValueError(f"flow coordinate {name} needs at least 2 cells")
+        lows = [c[0] - 0.5 * (c[1] - c[0]) for c in coords]
+        highs = [c[-1] + 0.5 * (c[1] - c[0]) for c in coords]
+        self.grid = AdeGrid.covering(lows, highs, s.cells)
+        self.with_diffusion = s.diffusivity is not None or s.k1 > 0 or s.k2 > 0
+        if s.diffusivity is not None:
+            diffusion = tuple(np.broadcast_to(np.asarray(s.diffusivity, float), (self.ndim,)))
+            if not any(diffusion):
+                diffusion, self.with_diffusion = None, False
+        elif self.with_diffusion:
+            k1, k2, d = s.k1, s.k2, s.d
+
+            def diffusion(velocities, fill, spacing):
+                return shear_diffusivity(velocities, fill, spacing, k1, k2, d)
+        else:
+            diffusion = None
+        self.reader = CyclicPhaseReader(
+            flow, self.grid, diffusion, memory_budget=s.memory_budget_mb * 2**20
+        )
+        self.vessel = self.reader.vessel.astype(np.uint8)
+        self.state = _State(s.scheme, self.grid.shape)
+        self.fields = _Fields(
+            self.ndim, self.grid.shape, self.with_diffusion, with_fill=s.scheme == "lax-wendroff"
+        )
+        self.t = 0.0
+        self.steps = 0
+        self.cell_updates = 0
+        self.dt_used = [math.inf, 0.0]
+        self.max_substeps = 0
+        self.records: dict[str, list] = {
+            "time": [], "rsd": [], "intensity": [], "mass_a": [], "fill_mismatch": []
+        }
+        self.snapshots: dict[float, np.ndarray] = {}
+        self.sampling_cell = self._sampling_cell()
+
+    # --- initial state ----------------------------------------------------
+    def initialise(self) -> None:
+        phase0 = self.reader.get(0)
+        c0 = _initial_concentration(self.settings, self.grid, phase0.fill)
+        if self.settings.scheme == "finite-volume":
+            self.state.m[...] = np.where(self.vessel, phase0.fill, 0.0)
+            self.state.q[...] = self.state.m * c0
+        else:
+            self.state.c[...] = c0
+
+    # --- concentration and metrics ----------------------------------------
+    def concentration_and_weight(self):
+        s = self.state
+        if s.scheme == "finite-volume":
+            c = np.empty(self.grid.shape)
+            kernels.concentration(s.m, s.q, c, M_MIN)
+            weight = np.where(np.isfinite(c), s.m, 0.0)
+        else:
+            fill = self.current_fill()
+            material = fill >= MATERIAL_THRESHOLD
+            c = np.where(material, s.c, np.nan)
+            weight = np.where(material, fill, 0.0)
+        return c, weight
+
+    def current_fill(self) -> np.ndarray:
+        a, b, w = self.reader.bracket(self._phase_position(self.t))
+        return a.fill + w * (b.fill - a.fill)
+
+    def _sampling_cell(self):
+        cell = self.settings.sampling_cell
+        if cell is None:
+            cell = 5 * self.settings.d
+        h = self.grid.spacing
+        if max(h) - min(h) > 1e-9 * max(h):
+            return None  # anisotropic ADE cells: sampling cells cannot be whole cubes
+        n = max(1, round(cell / h[0]))
+        return n * h[0]
+
+    def record(self) -> None:
+        c, weight = self.concentration_and_weight()
+        da = xr.DataArray(c, dims=self.grid.dims, coords=dict(zip(self.grid.dims, self.grid.coords, strict=True)))
+        w = xr.DataArray(weight, dims=da.dims, coords=da.coords)
+        rec = self.records
+        rec["time"].append(self.t)
+        rec["rsd"].append(float(metrics.rsd(da, fill=w)))
+        if self.sampling_cell is not None:
+            try:
+                value = float(metrics.segregation_intensity(da, fill=w, cell=self.sampling_cell))
+            except ValueError:
+                value = math.nan
+        else:
+            value = math.nan
+        rec["intensity"].append(value)
+        rec["mass_a"].append(float(np.nansum(c * weight)) * self.grid.cell_volume)
+        if self.settings.scheme == "finite-volume":
+            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(self.state.m.sum(), 1e-300)
+        else:
+            mismatch = 0.0
+        rec["fill_mismatch"].append(float(mismatch))
+        rev = self.t / self.period
+        for r in self.snapshot_revs:
+            if abs(r - rev) < 1e-9 and r not in self.snapshots:
+                self.snapshots[r] = c.astype(np.float32)
+
+    # --- stepping ---------------------------------------------------------
+    def _phase_position(self, t: float) -> float:
+        return (t / self.period) * self.reader.n_phases
+
+    def _limit(self, a, b) -> float:
+        """The largest stable dt for any blend of phases a and b (scheme's own limits)."""
+        s = self.settings
+        limits = []
+        for phase in {id(a): a, id(b): b}.values():
+            if s.scheme == "lax-wendroff":
+                diffs = phase.diffusivities or tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
+                material = (phase.fill >= MATERIAL_THRESHOLD)
+                limits.append(stability.lax_wendroff_max_dt(phase.velocities, diffs, self.grid.spacing, material))
+            else:
+                limits.append(stability.finite_volume_max_dt(phase.velocities, self.grid.spacing, self.vessel))
+        if a is not b:
+            # component-wise maxima bound every blend of the two phases
+            vmax = tuple(np.maximum(np.abs(x), np.abs(y)) for x, y in zip(a.velocities, b.velocities, strict=True))
+            if s.scheme == "lax-wendroff":
+                dmax = (tuple(np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True))
+                        if a.diffusivities is not None else tuple(np.zeros(self.grid.shape) for _ in range(self.ndim)))
+                material = (a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)
+                limits.append(stability.lax_wendroff_max_dt(vmax, dmax, self.grid.spacing, material))
+            else:
+                limits.append(stability.finite_volume_max_dt(vmax, self.grid.spacing, self.vessel))
+        return min(limits)
+
+    def advance_to(self, t_end: float) -> None:
+        """Step from self.t to t_end (no stored-phase boundary inside)."""
+        span = t_end - self.t
+        if span <= 1e-15 * self.period:
+            self.t = t_end
+            return
+        mid = self._phase_position(self.t + 0.5 * span)
+        k = math.floor(mid)
+        a, b, _ = self.reader.bracket(k)
+        limit = self._limit(a, b)
+        s = self.settings
+        if s.dt is not None:
+            if s.dt > limit:
+                raise ValueError(
+                    f"dt = {s.dt:.6g} s exceeds the stability limit of the {s.scheme} scheme, "
+                    f"{limit:.6g} s, for this flow and grid (see docs/numerics.md)"
+                )
+            dt_target = s.dt
+        else:
+            dt_target = s.safety * limit
+        n = max(1, math.ceil(span / dt_target - 1e-9)) if math.isfinite(dt_target) else 1
+        dt = span / n
+        self.dt_used[0] = min(self.dt_used[0], dt)
+        self.dt_used[1] = max(self.dt_used[1], dt)
+        n_sub = 0
+        if s.scheme == "finite-volume" and self.with_diffusion:
+            dmax = tuple(np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True))
+            n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
+            self.max_substeps = max(self.max_substeps, n_sub)
+        for _ in range(n):
+            t_mid = self.t + 0.5 * dt
+            w = self._phase_position(t_mid) - k
+            self.fields.blend(a, b, min(max(w, 0.0), 1.0) if a is not b else 0.0)
+            self._step(dt, n_sub)
+            self.t += dt
+            self.steps += 1
+            if self.steps % s.check_every == 0:
+                self.check()
+        self.t = t_end
+
+    def _step(self, dt: float, n_sub: int) -> None:
+        st, f, h = self.state, self.fields, self.grid.spacing
+        diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
+        if st.scheme == "finite-volume":
+            if self.ndim == 3:
+                kernels.fv_step_3d(st.m, st.q, st.m_next, st.q_next, st.work, *f.velocities,
+                                   *diffs, self.vessel, dt, *h, st.reverse, n_sub)
+            else:
+                kernels.fv_step_2d(st.m, st.q, st.m_next, st.q_next, st.work, *f.velocities,
+                                   *diffs, self.vessel, dt, *h, st.reverse, n_sub)
+            st.m, st.m_next = st.m_next, st.m
+            st.q, st.q_next = st.q_next, st.q
+            st.reverse = not st.reverse
+        else:
+            if self.ndim == 3:
+                kernels.lw_step_3d(st.c, st.c_next, *f.velocities, *diffs, f.material, dt, *h)
+                kernels.lw_free_surface_3d(st.c_next, f.material, f.fill)
+            else:
+                kernels.lw_step_2d(st.c, st.c_next, *f.velocities, *diffs, f.material, dt, *h)
+                kernels.lw_free_surface_2d(st.c_next, f.material, f.fill)
+            st.c, st.c_next = st.c_next, st.c
+        self.cell_updates += self._active_cells()
+
+    def _zeros(self):
+        if not hasattr(self, "_zero_fields"):
+            self._zero_fields = tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
+        return self._zero_fields
+
+    def _active_cells(self) -> int:
+        if self.settings.scheme == "finite-volume":
+            if self.steps % 50 == 0 or not hasattr(self, "_active"):
+                self._active = int(np.count_nonzero(self.state.m > M_MIN))
+            return self._active
+        return int(np.count_nonzero(self.fields.material))
+
+    def check(self) -> None:
+        """Stop with the step and cell if c is non-finite or far outside [0, 1]."""
+        st = self.state
+        if st.scheme == "finite-volume":
+            values = st.q
+            c, _ = self.concentration_and_weight()
+            bad = ~np.isfinite(st.q) | ~np.isfinite(st.m) | (st.m < -BOUND_TOLERANCE)
+            with np.errstate(invalid="ignore"):
+                bad |= np.isfinite(c) & ((c < -BOUND_TOLERANCE) | (c > 1 + BOUND_TOLERANCE))
+            values = c
+        else:
+            values = st.c
+            bad = ~np.isfinite(values) | (values < -BOUND_TOLERANCE) | (values > 1 + BOUND_TOLERANCE)
+        if bad.any():
+            cell = tuple(int(i) for i in np.argwhere(bad)[0])
+            where = ", ".join(f"{d}={self.grid.coords[i][j]:.4g} m" for i, (d, j) in enumerate(zip(self.grid.dims, cell, strict=True)))
+            raise BlowUpError(
+                f"{self.settings.scheme}: concentration {values[cell]!r} at step {self.steps}, "
+                f"t = {self.t:.6g} s, cell {cell} ({where}); dt was {self.dt_used[1]:.3g} s"
+            )
+
+    @property
+    def snapshot_revs(self):
+        return self._snapshot_revs
+
+    # --- checkpoints --------------------------------------------------------
+    def save_checkpoint(self, path: Path) -> None:
+        from ..io import write_checkpoint
+
+        arrays = dict(self.state.arrays())
+        for name, values in self.records.items():
+            arrays[f"record_{name}"] = np.asarray(values, float)
+        for r, snap in self.snapshots.items():
+            arrays[f"snapshot_{r!r}"] = snap.astype(float)
+        meta = {"t": self.t, "steps": self.steps, "cell_updates": self.cell_updates,
+                "reverse": int(self.state.reverse), "fingerprint": self.settings.fingerprint(),
+                "dt_min": self.dt_used[0], "dt_max": self.dt_used[1],
+                "max_substeps": self.max_substeps, "blendxr_version": __version__}
+        write_checkpoint(path, arrays, meta)
+
+    def load_checkpoint(self, path: Path) -> bool:
+        from ..io import read_checkpoint
+
+        arrays, meta = read_checkpoint(path)
+        if meta.get("fingerprint") != self.settings.fingerprint():
+            raise ValueError(
+                f"checkpoint {path} belongs to a run with other settings; "
+                "remove it or pass resume=False"
+            )
+        self.state.load({k: v for k, v in arrays.items() if k in self.state.arrays()})
+        self.state.reverse = bool(meta["reverse"])
+        for name in self.records:
+            self.records[name] = list(np.atleast_1d(arrays.get(f"record_{name}", [])))
+        for key, values in arrays.items():
+            if key.startswith("snapshot_"):
+                self.snapshots[float(key[len("snapshot_"):])] = values.astype(np.float32)
+        self.t = float(meta["t"])
+        self.steps = int(meta["steps"])
+        self.cell_updates = int(meta["cell_updates"])
+        self.dt_used = [float(meta["dt_min"]), float(meta["dt_max"])]
+        self.max_substeps = int(meta["max_substeps"])
+        return True
+
+
+def _progress_bar(settings: MixSettings, total: float):
+    from tqdm.auto import tqdm
+
+    show = settings.progress
+    if show is None:
+        show = os.isatty(2)
+    return tqdm(total=total, unit="rev", disable=not show, leave=False,
+                bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} rev [{elapsed}<{remaining}{postfix}]")
+
+
+def mix(flow, scene=None, **overrides) -> xr.Dataset:
+    """Run the advection-diffusion model of mixing through a flow.
+
+    Solves eq. (1)/(4) of the paper for the concentration c of species A, with the
+    shear-rate diffusivity of eq. (5), through the stored revolution of ``flow``
+    repeated cyclically for as many revolutions as asked.
+
+    Parameters
+    ----------
+    flow : xarray.Dataset or path
+        A flow dataset (``flow/1``) or a netCDF file holding one (opened lazily).
+    scene : Scene, str or None
+        Mixing and numerics settings; defaults to the scene stored in the flow's
+        attributes, else built-in defaults.
+    **overrides
+        Any of: ``scheme`` ("finite-volume" default, or "lax-wendroff"), ``initial`` (a
+        loading name — top-bottom, axial, transverse, side-side, left-right — or a
+        DataArray of c at t = 0), ``k1``, ``k2`` (default 1.9·k1), ``d`` (particle
+        diameter, m), ``diffusivity`` (constant diagonal D in m2/s instead of eq. 5),
+        ``revolutions``, ``cells`` (ADE cells along the longest axis, or per axis),
+        ``output_every`` (revolutions), ``snapshots`` (revolutions), ``sampling_cell``
+        (m, scale of scrutiny), ``safety`` (fraction of the stable dt), ``dt`` (s; refused
+        above the stability limit), ``memory_budget_mb``, ``progress``, ``checkpoint``
+        (path), ``checkpoint_every`` (revolutions), ``resume``, ``wall_time`` (s),
+        ``max_steps``.
+
+    Returns
+    -------
+    xarray.Dataset
+        The mixing dataset (``mixing/1``): rsd, intensity, mass_a against time, c at the
+        snapshot revolutions, and attributes giving the scheme, dt, grid, k1, k2, d,
+        steps, wall time and cell updates per second.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments (naming the argument and what is allowed), or a dt above the limit.
+    BlowUpError
+        The solution became non-finite or left [0, 1]; the message gives step and cell.
+    """
+    flow, scene = _resolve_flow(flow, scene)
+    settings = _settings_from(scene, overrides)
+    started = wallclock.perf_counter()
+    run = _Run(flow, scene, settings)
+    outputs, snaps = _event_times(settings, run.period)
+    run._snapshot_revs = [float(r) for r in snaps]
+    events = np.union1d(outputs, snaps)
+    checkpoint = Path(settings.checkpoint) if settings.checkpoint else None
+    if checkpoint is not None and settings.resume and checkpoint.exists():
+        run.load_checkpoint(checkpoint)
+    else:
+        run.initialise()
+        run.record()
+    next_checkpoint = (math.floor(run.t / run.period / settings.checkpoint_every + 1e-9) + 1) \
+        * settings.checkpoint_every
+    stopped_by = "revolutions"
+    bar = _progress_bar(settings, settings.revolutions)
+    bar.update(run.t / run.period)
+    try:
+        for rev in events:
+            t_event = rev * run.period
+            if t_event <= run.t + 1e-12 * run.period:
+                continue
+            # march through the stored-phase boundaries up to the event
+            while run.t < t_event - 1e-12 * run.period:
+                pos = run._phase_position(run.t)
+                boundary = (math.floor(pos + 1e-9) + 1) / run.reader.n_phases * run.period
+                run.advance_to(min(boundary, t_event))
+            run.check()
+            done = rev
+            if rev in outputs or rev in snaps:
+                run.record()
+            bar.update(done - bar.n)
+            bar.set_postfix_str(f"rsd {run.records['rsd'][-1]:.3f}")
+            if checkpoint is not None and rev >= next_checkpoint - 1e-9:
+                run.save_checkpoint(checkpoint)
+                next_checkpoint += settings.checkpoint_every
+            elapsed = wallclock.perf_counter() - started
+            if settings.wall_time is not None and elapsed >= settings.wall_time:
+                stopped_by = "wall_time"
+                break
+            if settings.max_steps is not None and run.steps >= settings.max_steps:
+                stopped_by = "max_steps"
+                break
+    finally:
+        bar.close()
+        run.reader.close()
+    if checkpoint is not None:
+        run.save_checkpoint(checkpoint)
+    wall = wallclock.perf_counter() - started
+    return _mixing_result(run, scene, wall, stopped_by)
+
+
+def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset:
+    s = run.settings
+    rec = run.records
+    times = np.asarray(rec["time"])
+    revs = sorted(run.snapshots)
+    snap = np.stack([run.snapshots[r] for r in revs]) if revs else np.zeros((0, *run.grid.shape), np.float32)
+    coords = dict(zip(("x", "y", "z"), run.grid.coords, strict=False))
+    mass = np.asarray(rec["mass_a"])
+    drift = float(np.max(np.abs(mass - mass[0])) / mass[0]) if mass[0] > 0 else 0.0
+    attrs = {
+        "scheme": s.scheme,
+        "dt_min": run.dt_used[0] if math.isfinite(run.dt_used[0]) else 0.0,
+        "dt_max": run.dt_used[1],
+        "safety": s.safety,
+        "steps": run.steps,
+        "grid_cells": list(run.grid.shape),
+        "grid_spacing": list(run.grid.spacing),
+        "k1": s.k1,
+        "k2": s.k2,
+        "d": s.d,
+        "diffusivity": "eq. (5) shear-rate" if s.diffusivity is None else f"constant {s.diffusivity}",
+        "initial": s.initial if isinstance(s.initial, str) else "user DataArray",
+        "revolutions": float(times[-1] / run.period) if len(times) else 0.0,
+        "revolutions_requested": s.revolutions,
+        "stopped_by": stopped_by,
+        "wall_time_s": wall,
+        "cell_updates": run.cell_updates,
+        "cell_updates_per_s": run.cell_updates / wall if wall > 0 else 0.0,
+        "phases_read": run.reader.phases_read,
+        "diffusion_substeps_max": run.max_substeps,
+        "mass_a_relative_drift": drift,
+        "fill_mismatch_max": float(np.max(rec["fill_mismatch"])) if rec["fill_mismatch"] else 0.0,
+        "sampling_cell": run.sampling_cell if run.sampling_cell is not None else 0.0,
+        "period_s": run.period,
+    }
+    kwargs = {}
+    if run.ndim == 3:
+        kwargs["z"] = coords["z"]
+    return mixing_dataset(
+        coords["x"],
+        coords["y"],
+        time=times,
+        revolution=times / run.period,
+        rsd=np.asarray(rec["rsd"]),
+        intensity=np.asarray(rec["intensity"]),
+        mass_a=mass,
+        snapshot_time=np.asarray(revs) * run.period,
+        snapshot_revolution=np.asarray(revs, float),
+        c=snap,
+        scene=scene.to_toml() if scene is not None else "",
+        attrs=attrs,
+        **kwargs,
+    )

@@ -1,0 +1,196 @@
+"""The ``blendxr`` command: one verb per job.
+
+Errors in input print one line and exit with status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+DEFAULT_MIX_SCENE = "swirl-2d"
+
+
+def _flow_for_scene(scene, flow_path=None):
+    """The flow a scene asks for: an analytic flow, a file, or the built-in solver."""
+    from . import flows
+    from .io import open_flow
+
+    if flow_path is not None:
+        return open_flow(flow_path)
+    spec = scene["flow"]
+    source = spec.get("source", "solver")
+    if source == "analytic":
+        maker = getattr(flows, spec["analytic"])
+        return maker(**spec.get("parameters", {}))
+    if source == "file":
+        return open_flow(spec["path"])
+    raise NotImplementedError(
+        f"scene {scene.name!r} needs the built-in flow solver, which is not part of this "
+        "version; give a flow file with --flow or use an analytic scene "
+        "(blendxr scenes lists them)"
+    )
+
+
+def _mix_overrides(args) -> dict:
+    overrides = {}
+    for name in ("scheme", "k1", "k2", "revolutions", "cells", "output_every", "dt", "initial"):
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides[name] = value
+    if args.checkpoint:
+        overrides["checkpoint"] = args.checkpoint
+    overrides["progress"] = not args.quiet
+    return overrides
+
+
+def _summary(mixed) -> str:
+    a = mixed.attrs
+    rsd = mixed["rsd"].values
+    rev = mixed["revolution"].values
+    lines = [
+        f"scheme {a['scheme']}, grid {a['grid_cells']}, k1 = {a['k1']:g}, "
+        f"{a['steps']} steps, dt {a['dt_min']:.3g}..{a['dt_max']:.3g} s",
+        f"wall time {a['wall_time_s']:.2f} s, {a['cell_updates_per_s'] / 1e6:.1f} M cell updates/s, "
+        f"species mass drift {a['mass_a_relative_drift']:.2e}",
+        f"RSD {rsd[0]:.3f} at rev {rev[0]:g} -> {rsd[-1]:.4f} at rev {rev[-1]:g}",
+    ]
+    below = rev[rsd <= 0.05]
+    if len(below):
+        lines.append(f"RSD <= 5 % (usual blend-uniformity acceptance) from revolution {below[0]:g}")
+    else:
+        lines.append("RSD did not reach 5 % in the revolutions run")
+    return "\n".join(lines)
+
+
+def _cmd_mix(args) -> int:
+    from . import mix
+    from .io import write_dataset
+    from .plot import save_report_figure
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    flow = _flow_for_scene(scene, args.flow)
+    mixed = mix(flow, scene, **_mix_overrides(args))
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    write_dataset(mixed, out / "mixing.nc")
+    if args.save_flow:
+        write_dataset(flow, out / "flow.nc")
+    save_report_figure(mixed, out / "mixing.png")
+    print(_summary(mixed))
+    print(f"wrote {out / 'mixing.nc'} and {out / 'mixing.png'}")
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    import xarray as xr
+
+    from .schema import validate
+
+    for path in args.files:
+        with xr.open_dataset(path, chunks={}) as ds:
+            validate(ds)
+        print(f"{path}: valid {ds.attrs.get('blendxr_schema')}")
+    return 0
+
+
+def _cmd_info(args) -> int:
+    import xarray as xr
+
+    with xr.open_dataset(args.file, chunks={}) as ds:
+        print(ds)
+    return 0
+
+
+def _cmd_scenes(args) -> int:
+    from .scene import builtin_scenes, load_scene
+
+    for name in builtin_scenes():
+        scene = load_scene(name)
+        first = scene.get("description", "").strip().splitlines()
+        print(f"{name:24s} {first[0] if first else ''}")
+    return 0
+
+
+def _cmd_scene(args) -> int:
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    print(json.dumps(scene.to_dict(), indent=2) if args.json else scene.to_toml())
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ._version import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="blendxr", description="Mixing of powders in tumbling blenders, from flow to RSD."
+    )
+    parser.add_argument("--version", action="version", version=f"blendxr {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def add_mix_arguments(p):
+        p.add_argument("--flow", help="a flow netCDF file (default: the scene's own flow)")
+        p.add_argument("-o", "--output", default=".", help="output folder (default: .)")
+        p.add_argument("--scheme", choices=["finite-volume", "lax-wendroff"])
+        p.add_argument("--k1", type=float)
+        p.add_argument("--k2", type=float)
+        p.add_argument("--revolutions", type=float)
+        p.add_argument("--cells", type=int, help="ADE cells along the longest axis")
+        p.add_argument("--output-every", dest="output_every", type=float)
+        p.add_argument("--dt", type=float, help="time step in s (refused above the limit)")
+        p.add_argument("--initial", help="loading: top-bottom, axial, transverse")
+        p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
+        p.add_argument("--save-flow", action="store_true", help="also write flow.nc")
+        p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("mix", help="run the mixing model on a scene's flow or a flow file")
+    p.add_argument("scene", nargs="?", default=DEFAULT_MIX_SCENE)
+    add_mix_arguments(p)
+    p.set_defaults(func=_cmd_mix)
+
+    p = sub.add_parser("run", help="flow + mixing + report for a scene")
+    p.add_argument("scene", nargs="?", default=DEFAULT_MIX_SCENE)
+    add_mix_arguments(p)
+    p.set_defaults(func=_cmd_mix, save_flow=True)
+
+    p = sub.add_parser("validate", help="check netCDF files against the blendxr schemas")
+    p.add_argument("files", nargs="+")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("info", help="print a dataset's summary")
+    p.add_argument("file")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("scenes", help="list the built-in scenes")
+    p.set_defaults(func=_cmd_scenes)
+
+    p = sub.add_parser("scene", help="print a scene with its defaults filled in")
+    p.add_argument("scene")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_scene)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``blendxr`` command."""
+    args = _parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("blendxr: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError, NotImplementedError, OSError,
+            FloatingPointError) as err:
+        message = " ".join(str(err).split())
+        print(f"blendxr: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
