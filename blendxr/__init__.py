@@ -1,8 +1,43 @@
 """blendxr: how many revolutions until this blend is uniform?
 
-The public face of the package. Everything a user or a test relies on is named here.
+The public face of the package (DESIGN §6). Everything a user or a test relies on is
+named here; everything else is an implementation detail.
 """
 
 from ._version import __version__
+from .ade.stepper import SCHEMES, BlowUpError, mix
+from .flow import analytic as flows
+from .io import open_flow, open_mixing, write_dataset
+from .metrics import (
+    lacey_index,
+    random_mixture_intensity,
+    rsd,
+    segregation_intensity,
+    thief_rsd,
+    thief_samples,
+)
+from .scene import Scene, SceneError, builtin_scenes, load_scene
+from .schema import SchemaError, validate
 
-__all__ = ["__version__"]
+__all__ = [
+    "__version__",
+    "SCHEMES",
+    "BlowUpError",
+    "Scene",
+    "SceneError",
+    "SchemaError",
+    "builtin_scenes",
+    "flows",
+    "lacey_index",
+    "load_scene",
+    "mix",
+    "open_flow",
+    "open_mixing",
+    "random_mixture_intensity",
+    "rsd",
+    "segregation_intensity",
+    "thief_rsd",
+    "thief_samples",
+    "validate",
+    "write_dataset",
+]

@@ -1,0 +1,314 @@
+"""The ADE driver against exact solutions, conservation laws and hard cases.
+
+Every scheme runs the same problems (parametrised), in the spirit of testing every
+time-stepper against exact answers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import blendxr as bx
+
+SCHEMES = list(bx.SCHEMES)
+
+
+def gaussian(centre, sigma2, background=0.2, amplitude=0.6):
+    """Initial c: a Gaussian bump on a constant background (stays inside [0, 1])."""
+
+    def c0(*points):
+        r2 = sum((p - c) ** 2 for p, c in zip(points, centre, strict=True))
+        return background + amplitude * np.exp(-r2 / (2 * sigma2))
+
+    return c0
+
+
+def exact_gaussian(points, centre, sigma2, velocity, diffusivity, t, background=0.2, amplitude=0.6):
+    """Exact solution of c_t + u.grad c = div(D grad c) for constant u and diagonal D."""
+    value = np.full(points[0].shape, amplitude)
+    for p, c, u, d in zip(points, centre, velocity, diffusivity, strict=True):
+        s2 = sigma2 + 2 * d * t
+        value = value * np.sqrt(sigma2 / s2) * np.exp(-((p - c - u * t) ** 2) / (2 * s2))
+    return background + value
+
+
+def final_field(mixed):
+    c = mixed["c"].isel(snapshot=-1)
+    points = np.meshgrid(*[c[d].values for d in c.dims], indexing="ij")
+    return c.values, points
+
+
+def l1_error(values, exact, spacing, window):
+    inside = window & np.isfinite(values)
+    return float(np.abs(values - exact)[inside].sum() * np.prod(spacing))
+
+
+def observed_orders(errors):
+    e = np.asarray(errors)
+    return np.log2(e[:-1] / e[1:])
+
+
+# ---------------------------------------------------------------------------- exact solutions
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_gaussian_in_oblique_uniform_flow_converges_at_design_order(scheme):
+    velocity = (0.5, 0.3)
+    diffusivity = (1.0e-3, 4.0e-4)
+    centre, sigma2 = (0.35, 0.4), 0.07**2
+    flow = bx.flows.uniform(velocity=velocity, cells=8, extent=1.0, rpm=60.0)
+    t_end = 0.4  # revolutions of a 1 s period
+    errors = []
+    for cells in (32, 64, 128):
+        mixed = bx.mix(
+            flow,
+            scheme=scheme,
+            initial=gaussian(centre, sigma2),
+            diffusivity=diffusivity,
+            revolutions=t_end,
+            output_every=t_end,
+            snapshots=[t_end],
+            cells=cells,
+            progress=False,
+        )
+        values, points = final_field(mixed)
+        exact = exact_gaussian(points, centre, sigma2, velocity, diffusivity, t_end)
+        window = (np.abs(points[0] - 0.5) < 0.35) & (np.abs(points[1] - 0.5) < 0.35)
+        errors.append(l1_error(values, exact, mixed.attrs["grid_spacing"], window))
+    orders = observed_orders(errors)
+    minimum = 1.8 if scheme == "lax-wendroff" else 1.5
+    assert orders.min() >= minimum, f"{scheme}: L1 errors {errors}, orders {orders}"
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_solid_body_rotation_3d_returns_spread_gaussian_after_one_revolution(scheme):
+    radius, rpm, diffusion = 0.1, 10.0, 2.0e-6
+    flow = bx.flows.solid_body_rotation(ndim=3, radius=radius, cells=16, rpm=rpm)
+    period = 60.0 / rpm
+    centre, sigma2 = (0.045, 0.0, 0.0), 0.018**2
+    errors = []
+    for cells in (24, 48):
+        mixed = bx.mix(
+            flow,
+            scheme=scheme,
+            initial=gaussian(centre, sigma2),
+            diffusivity=(diffusion,) * 3,
+            revolutions=1.0,
+            output_every=0.5,
+            snapshots=[1.0],
+            cells=cells,
+            progress=False,
+        )
+        values, points = final_field(mixed)
+        exact = exact_gaussian(points, centre, sigma2, (0, 0, 0), (diffusion,) * 3, period)
+        r = np.hypot(points[0], points[1])
+        window = (r < 0.8 * radius) & (np.abs(points[2]) < 0.6 * radius)
+        errors.append(l1_error(values, exact, mixed.attrs["grid_spacing"], window))
+    # the peak must come back to where it started, spread by exactly 2DT
+    assert errors[1] < 0.5 * errors[0], errors
+    peak = np.unravel_index(np.nanargmax(values), values.shape)
+    assert np.allclose([p[peak] for p in points], centre, atol=2 * mixed.attrs["grid_spacing"][0])
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_swirl_returns_to_initial_state_after_each_revolution(scheme):
+    flow = bx.flows.swirl(ndim=2, cells=32, n_phases=24, rpm=60.0, size=1.0)
+    start = gaussian((0.5, 0.3), 0.1**2)
+    errors = []
+    for cells in (32, 64):
+        mixed = bx.mix(
+            flow,
+            scheme=scheme,
+            initial=start,
+            k1=0.0,
+            revolutions=1.0,
+            output_every=0.25,
+            snapshots=[0.0, 0.5, 1.0],
+            cells=cells,
+            progress=False,
+        )
+        values, points = final_field(mixed)
+        window = np.ones(values.shape, bool)
+        errors.append(l1_error(values, start(*points), mixed.attrs["grid_spacing"], window))
+        halfway = mixed["c"].sel(snapshot=1).values
+        # half way through, the bump is stretched far from its start
+        assert l1_error(halfway, start(*points), mixed.attrs["grid_spacing"], window) > 3 * errors[-1]
+    assert errors[1] < 0.6 * errors[0], errors
+
+
+# ---------------------------------------------------------------------------- conservation
+
+
+def test_finite_volume_conserves_species_in_closed_vessel_with_moving_bed():
+    flow = bx.flows.solid_body_rotation(
+        ndim=2, radius=0.1, cells=24, rpm=10.0, fill_fraction=0.4, n_phases=36
+    )
+    mixed = bx.mix(
+        flow,
+        scheme="finite-volume",
+        initial="transverse",
+        k1=0.05,
+        d=0.004,
+        revolutions=1.0,
+        output_every=0.05,
+        cells=48,
+        max_steps=1000,
+        progress=False,
+    )
+    assert mixed.attrs["steps"] >= 1000 or mixed.attrs["stopped_by"] == "revolutions"
+    mass = mixed["mass_a"].values
+    assert np.max(np.abs(mass - mass[0])) / mass[0] <= 1e-10
+    c = mixed["c"].values
+    assert np.nanmin(c) >= 0.0 and np.nanmax(c) <= 1.0  # no clipping in this scheme
+
+
+def test_lax_wendroff_reports_its_mass_drift():
+    flow = bx.flows.solid_body_rotation(
+        ndim=2, radius=0.1, cells=24, rpm=10.0, fill_fraction=0.4, n_phases=36
+    )
+    mixed = bx.mix(flow, scheme="lax-wendroff", initial="transverse", k1=0.0,
+                   revolutions=0.5, cells=40, progress=False)
+    mass = mixed["mass_a"].values
+    reported = mixed.attrs["mass_a_relative_drift"]
+    assert reported == pytest.approx(np.max(np.abs(mass - mass[0])) / mass[0])
+
+
+def test_swapping_colours_gives_one_minus_c():
+    flow = bx.flows.swirl(ndim=2, cells=24, n_phases=12, rpm=60.0, size=0.2)
+    start = gaussian((0.1, 0.06), 0.03**2)
+
+    def swapped(*p):
+        return 1.0 - start(*p)
+
+    runs = [
+        bx.mix(flow, scheme="finite-volume", initial=f, k1=0.5, d=0.004, revolutions=0.5,
+               cells=32, progress=False)
+        for f in (start, swapped)
+    ]
+    a, b = (r["c"].isel(snapshot=-1).values for r in runs)
+    material = np.isfinite(a)
+    np.testing.assert_allclose(a[material] + b[material], 1.0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- hard cases
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_zero_velocity_and_no_diffusion_leaves_c_unchanged(scheme):
+    flow = bx.flows.uniform(velocity=(0.0, 0.0, 0.0), cells=6, extent=1.0)
+    mixed = bx.mix(flow, scheme=scheme, initial="top-bottom", k1=0.0, revolutions=1.0,
+                   cells=12, progress=False)
+    c = mixed["c"].values
+    np.testing.assert_array_equal(c[0][np.isfinite(c[0])], c[-1][np.isfinite(c[-1])])
+    assert mixed.attrs["diffusion_substeps_max"] == 0
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_stiff_diffusion_stays_bounded_and_mixes(scheme):
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=8, rpm=60.0, size=0.1)
+    mixed = bx.mix(flow, scheme=scheme, initial="top-bottom", k1=1.0, d=0.01,
+                   revolutions=0.5, cells=32, progress=False)
+    c = mixed["c"].values
+    assert np.all(np.isfinite(c[np.isfinite(c)]))
+    assert np.nanmin(c) >= -1e-12 and np.nanmax(c) <= 1 + 1e-12
+    assert mixed["rsd"].values[-1] < 0.5 * mixed["rsd"].values[0]
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_one_material_cell_and_full_vessel(scheme):
+    full = bx.flows.uniform(velocity=(0.01, 0.0), cells=8, extent=1.0)
+    one = full.copy(deep=True)
+    fill = np.zeros_like(one["fill"].values)
+    fill[:, 4, 4] = 1.0
+    one["fill"].values[...] = fill
+    for flow in (full, one):
+        mixed = bx.mix(flow, scheme=scheme, initial="transverse", k1=0.0, revolutions=0.2,
+                       cells=16, progress=False)
+        c = mixed["c"].values
+        assert np.isfinite(c).any()
+        assert np.nanmin(c) >= 0 and np.nanmax(c) <= 1
+
+
+def test_no_material_at_start_is_refused():
+    flow = bx.flows.uniform(velocity=(0.0, 0.0), cells=8)
+    flow["fill"].values[...] = 0.0
+    with pytest.raises(ValueError, match="no material"):
+        bx.mix(flow, revolutions=0.1, cells=16, progress=False)
+
+
+def test_a_phase_without_material_does_not_break_the_run():
+    flow = bx.flows.solid_body_rotation(
+        ndim=2, radius=0.1, cells=16, rpm=10.0, fill_fraction=0.4, n_phases=6
+    )
+    flow["fill"].values[3] = 0.0
+    mixed = bx.mix(flow, scheme="finite-volume", initial="transverse", k1=0.0,
+                   revolutions=1.0, cells=24, progress=False)
+    mass = mixed["mass_a"].values
+    assert np.max(np.abs(mass - mass[0])) / mass[0] <= 1e-10
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_dt_above_the_stability_limit_is_refused_with_the_limit(scheme):
+    flow = bx.flows.uniform(velocity=(1.0, 0.5), cells=8)
+    with pytest.raises(ValueError, match=r"exceeds the stability limit .* s"):
+        bx.mix(flow, scheme=scheme, dt=1.0, revolutions=0.1, cells=32, progress=False)
+
+
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        ({"scheme": "upwind"}, "scheme"),
+        ({"k1": -0.1}, "k1"),
+        ({"d": -1.0}, "d"),
+        ({"initial": "diagonal"}, "initial"),
+        ({"revolutions": 0}, "revolutions"),
+    ],
+)
+def test_bad_arguments_name_the_argument(kwargs, word):
+    flow = bx.flows.uniform(velocity=(0.0, 0.0), cells=8)
+    with pytest.raises(ValueError, match=word):
+        bx.mix(flow, progress=False, **kwargs)
+
+
+def test_axial_loading_needs_z():
+    flow = bx.flows.uniform(velocity=(0.0, 0.0), cells=8)
+    with pytest.raises(ValueError, match="z"):
+        bx.mix(flow, initial="axial", revolutions=0.1, progress=False)
+
+
+# ---------------------------------------------------------------------------- outputs
+
+
+def test_mixing_dataset_is_valid_and_labelled():
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=8, rpm=60.0, size=0.2)
+    mixed = bx.mix(flow, initial="top-bottom", k1=0.1, d=0.004, revolutions=1.0,
+                   output_every=0.25, snapshots=[0, 1], cells=24, progress=False)
+    bx.validate(mixed)
+    assert "z" not in mixed.dims
+    np.testing.assert_allclose(mixed["revolution"].values, [0, 0.25, 0.5, 0.75, 1.0])
+    assert mixed["rsd"].values[0] == pytest.approx(1.0, rel=0.1)  # segregated start
+    for key in ("scheme", "dt_max", "k1", "k2", "d", "wall_time_s", "grid_cells"):
+        assert key in mixed.attrs
+    assert mixed.attrs["k2"] == pytest.approx(1.9 * 0.1)
+
+
+def test_checkpoint_resume_gives_the_same_answer(tmp_path):
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=8, rpm=60.0, size=0.2)
+    kwargs = dict(initial="top-bottom", k1=0.1, d=0.004, cells=24, progress=False,
+                  output_every=0.25)
+    straight = bx.mix(flow, revolutions=2.0, **kwargs)
+    ckpt = tmp_path / "run.ckpt.nc"
+    first = bx.mix(flow, revolutions=2.0, checkpoint=ckpt, checkpoint_every=0.5,
+                   max_steps=1, **kwargs)
+    assert first.attrs["stopped_by"] == "max_steps"
+    resumed = bx.mix(flow, revolutions=2.0, checkpoint=ckpt, **kwargs)
+    np.testing.assert_array_equal(resumed["rsd"].values, straight["rsd"].values)
+    np.testing.assert_array_equal(resumed["c"].values, straight["c"].values)
+
+
+def test_only_the_phases_in_use_are_read():
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=24, rpm=60.0, size=0.2)
+    mixed = bx.mix(flow, k1=0.0, revolutions=0.25, output_every=0.25, cells=24, progress=False)
+    # a quarter revolution touches phases 0..6 (plus one prefetched ahead)
+    assert mixed.attrs["phases_read"] <= 8
