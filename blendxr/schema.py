@@ -12,7 +12,8 @@ returns (dims, coords, data_vars, attrs), and carries extra keywords, all prefix
 ``x-blendxr-finite``
     no NaN or infinity anywhere.
 ``x-blendxr-minimum``, ``x-blendxr-maximum``, ``x-blendxr-exclusiveMaximum``
-    range of the values that are not NaN.
+    range of the values that are not NaN; closed bounds allow ``x-blendxr-range-atol``
+    of round-off (a bounded scheme may leave -1e-20 where it means 0).
 ``x-blendxr-enum``
     the only values allowed (the vessel mask).
 ``x-blendxr-equally-spaced``
@@ -313,11 +314,12 @@ def _lazy_checks(ds: xr.Dataset, schema: Mapping) -> dict:
         hi = spec.get("x-blendxr-maximum")
         hi_open = spec.get("x-blendxr-exclusiveMaximum")
         if (lo is not None or hi is not None or hi_open is not None) and arr.size:
+            atol = float(schema.get("x-blendxr-range-atol", 0.0))
             tests = []
             if lo is not None:
-                tests.append(arr < lo)
+                tests.append(arr < lo - atol)
             if hi is not None:
-                tests.append(arr > hi)
+                tests.append(arr > hi + atol)
             if hi_open is not None:
                 tests.append(arr >= hi_open)
             outside = functools.reduce(operator.or_, tests)
