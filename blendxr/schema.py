@@ -291,25 +291,32 @@ def _attribute_faults(ds: xr.Dataset, schema: Mapping) -> list[str]:
 
 
 def _as_dask(var: xr.Variable) -> da.Array:
-    data = var.data
-    if isinstance(data, da.Array):
-        return data
+    if var.chunks is not None:
+        return var.data
+    if not getattr(var, "_in_memory", True) and var.ndim > 1:
+        # A file opened without dask: read it one leading slice at a time, not whole.
+        return var.chunk({var.dims[0]: 1}).data
     return da.from_array(np.asarray(var.values), chunks=-1)
 
 
-def _lazy_checks(ds: xr.Dataset, schema: Mapping) -> dict:
-    """Build every value check as a lazy dask reduction, keyed by (variable, check)."""
-    lazy: dict[tuple[str, str], Any] = {}
+def _lazy_checks(ds: xr.Dataset, schema: Mapping, xp) -> dict:
+    """Every value check, keyed by (variable, check).
+
+    With ``xp = dask.array`` the checks are lazy reductions, to be computed together; with
+    ``xp = numpy`` (all data already in memory) they are evaluated on the spot, which spares
+    building a task graph for small in-memory datasets.
+    """
+    checks: dict[tuple[str, str], Any] = {}
     for name, spec in _variable_specs(schema).items():
         if name not in ds.variables:
             continue
         var = ds.variables[name]
         if var.dtype.kind not in "biuf":
             continue  # a dtype fault is reported by the structure check
-        arr = _as_dask(var)
+        arr = np.asarray(var.values) if xp is np else _as_dask(var)
         floating = var.dtype.kind == "f"
         if spec.get("x-blendxr-finite") and floating:
-            lazy[name, "nonfinite"] = (~da.isfinite(arr)).sum()
+            checks[name, "nonfinite"] = (~xp.isfinite(arr)).sum()
         lo = spec.get("x-blendxr-minimum")
         hi = spec.get("x-blendxr-maximum")
         hi_open = spec.get("x-blendxr-exclusiveMaximum")
@@ -323,23 +330,23 @@ def _lazy_checks(ds: xr.Dataset, schema: Mapping) -> dict:
             if hi_open is not None:
                 tests.append(arr >= hi_open)
             outside = functools.reduce(operator.or_, tests)
-            lazy[name, "outside"] = outside.sum()
+            checks[name, "outside"] = outside.sum()
             if floating:
-                lazy[name, "min"] = da.nanmin(arr)
-                lazy[name, "max"] = da.nanmax(arr)
+                checks[name, "min"] = xp.nanmin(arr)
+                checks[name, "max"] = xp.nanmax(arr)
             else:
-                lazy[name, "min"] = arr.min()
-                lazy[name, "max"] = arr.max()
+                checks[name, "min"] = arr.min()
+                checks[name, "max"] = arr.max()
         if "x-blendxr-enum" in spec:
-            lazy[name, "not_in_enum"] = (~da.isin(arr, spec["x-blendxr-enum"])).sum()
+            checks[name, "not_in_enum"] = (~xp.isin(arr, spec["x-blendxr-enum"])).sum()
         needs_values = (
             spec.get("x-blendxr-equally-spaced")
             or spec.get("x-blendxr-increasing")
             or "x-blendxr-cyclic" in spec
         )
         if needs_values and var.ndim == 1:
-            lazy[name, "values"] = arr
-    return lazy
+            checks[name, "values"] = arr
+    return checks
 
 
 def _fmt(value: float) -> str:
@@ -393,14 +400,16 @@ def _cyclic_faults(name: str, values: np.ndarray, period: float, rtol: float) ->
 
 
 def _value_faults(ds: xr.Dataset, schema: Mapping) -> list[str]:
-    lazy = _lazy_checks(ds, schema)
-    if not lazy:
-        return []
+    in_memory = all(
+        getattr(var, "_in_memory", False) and var.chunks is None for var in ds.variables.values()
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices in nanmin/nanmax
-        # In-memory data needs no thread pool; lazy data takes the caller's scheduler.
-        in_memory = not any(isinstance(ds.variables[name].data, da.Array) for name, _ in lazy)
-        (result,) = dask.compute(lazy, **({"scheduler": "sync"} if in_memory else {}))
+        if in_memory:
+            result = _lazy_checks(ds, schema, np)
+        else:
+            # One pass over lazy data: every reduction of every variable in one graph.
+            (result,) = dask.compute(_lazy_checks(ds, schema, da))
     rtol = float(schema.get("x-blendxr-rtol", 1e-6))
     faults = []
     for name, spec in _variable_specs(schema).items():

@@ -135,6 +135,14 @@ def test_validate_is_lazy_and_computes_once(flow_3d, monkeypatch):
     assert isinstance(lazy.vx.data, dask.array.Array)  # nothing was loaded into the dataset
 
 
+def test_validate_streams_a_file_opened_without_dask(tmp_path, flow_3d):
+    path = bio.write_dataset(flow_3d, tmp_path / "flow.nc")
+    with xr.open_dataset(path) as ds:
+        validate(ds)
+        # read slice by slice for the checks, never cached whole in the dataset
+        assert not ds.variables["vx"]._in_memory
+
+
 # ---------------------------------------------------------------------------------------
 # validate: rejection, with the variable named and every fault listed
 # ---------------------------------------------------------------------------------------
