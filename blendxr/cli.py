@@ -55,7 +55,8 @@ def _summary(mixed) -> str:
     lines = [
         f"scheme {a['scheme']}, grid {a['grid_cells']}, k1 = {a['k1']:g}, "
         f"{a['steps']} steps, dt {a['dt_min']:.3g}..{a['dt_max']:.3g} s",
-        f"wall time {a['wall_time_s']:.2f} s, {a['cell_updates_per_s'] / 1e6:.1f} M cell updates/s, "
+        f"wall time {a['wall_time_s']:.2f} s, "
+        f"{a['cell_updates_per_s'] / 1e6:.1f} M cell updates/s, "
         f"species mass drift {a['mass_a_relative_drift']:.2e}",
         f"RSD {rsd[0]:.3f} at rev {rev[0]:g} -> {rsd[-1]:.4f} at rev {rev[-1]:g}",
     ]
@@ -185,8 +186,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("blendxr: interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, NotImplementedError, OSError,
-            FloatingPointError) as err:
+    except (ValueError, FileNotFoundError, NotImplementedError, OSError, FloatingPointError) as err:
         message = " ".join(str(err).split())
         print(f"blendxr: error: {message}", file=sys.stderr)
         return 2

@@ -48,9 +48,7 @@ def mixing_curve(mixing, ax=None, floor=None, label=None):
         ax.axhline(floor, ls="--", color="k", lw=1, label="random mixture")
     ax.set_xlabel("revolutions")
     ax.set_ylabel("RSD, segregation intensity")
-    ax.set_title(
-        f"{mixing.attrs.get('scheme', '')}, k1 = {mixing.attrs.get('k1', float('nan')):g}"
-    )
+    ax.set_title(f"{mixing.attrs.get('scheme', '')}, k1 = {mixing.attrs.get('k1', float('nan')):g}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     return ax
@@ -67,8 +65,9 @@ def snapshots(mixing, axis="z", position=0.0, max_panels=6):
         if "z" in field.dims:
             field = field.sel({axis: position}, method="nearest")
         ax = axes[0, i]
-        field.T.plot.imshow(ax=ax, vmin=0, vmax=1, cmap="coolwarm", add_colorbar=False,
-                            origin="lower")
+        field.T.plot.imshow(
+            ax=ax, vmin=0, vmax=1, cmap="coolwarm", add_colorbar=False, origin="lower"
+        )
         ax.set_title(f"rev {float(c['snapshot_revolution'][i]):g}")
         ax.set_aspect("equal")
         ax.set_xlabel("")
@@ -86,8 +85,14 @@ def save_report_figure(mixing, path, floor=None) -> Path:
         field = mixing["c"].isel(snapshot=-1)
         if "z" in field.dims:
             field = field.sel(z=0.0, method="nearest")
-        field.T.plot.imshow(ax=right, vmin=0, vmax=1, cmap="coolwarm", origin="lower",
-                            cbar_kwargs={"label": "c (species A)"})
+        field.T.plot.imshow(
+            ax=right,
+            vmin=0,
+            vmax=1,
+            cmap="coolwarm",
+            origin="lower",
+            cbar_kwargs={"label": "c (species A)"},
+        )
         right.set_aspect("equal")
         rev = float(mixing["snapshot_revolution"][-1])
         right.set_title(f"c after {rev:g} revolutions")

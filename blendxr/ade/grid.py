@@ -67,9 +67,7 @@ class AdeGrid:
         else:
             counts = np.asarray(cells, int)
             if counts.shape != lengths.shape:
-                raise ValueError(
-                    f"cells: {len(counts)} values given for a {len(lengths)}-D flow"
-                )
+                raise ValueError(f"cells: {len(counts)} values given for a {len(lengths)}-D flow")
             spacing = lengths / counts
         coords = []
         for lo, length, n, h in zip(lows, lengths, counts, spacing, strict=True):

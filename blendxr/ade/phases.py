@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .diffusivity import shear_diffusivity
 from .grid import AdeGrid, AxisMap, extend_into_empty, inside_mask, interpolate
 
 __all__ = ["PreparedPhase", "CyclicPhaseReader"]
@@ -95,7 +94,9 @@ class CyclicPhaseReader:
             bad = ~np.isfinite(values)
             if bad.any():
                 cell = tuple(int(i) for i in np.argwhere(bad)[0])
-                raise ValueError(f"flow variable {name} is not finite at rev_phase index {k}, cell {cell}")
+                raise ValueError(
+                    f"flow variable {name} is not finite at rev_phase index {k}, cell {cell}"
+                )
         return arrays
 
     def _prepare(self, k: int) -> PreparedPhase:
@@ -125,7 +126,9 @@ class CyclicPhaseReader:
         )
         fill_ade = np.where(self.vessel, np.clip(interpolate(fill, self._maps), 0.0, 1.0), 0.0)
         if diffusivities is not None:
-            diffusivities = tuple(np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities)
+            diffusivities = tuple(
+                np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities
+            )
         return PreparedPhase(k, velocities_ade, diffusivities, fill_ade)
 
     def get(self, k: int) -> PreparedPhase:
@@ -174,4 +177,14 @@ class CyclicPhaseReader:
             return p, p, 0.0
         k = int(np.floor(phase_position + 1e-12))
         w = min(max(phase_position - k, 0.0), 1.0)
-        return self.get(k), self.get(k + 1), w
+        first = self.get(k)
+        if w == 0.0:  # exactly on a stored phase: the next one is not needed
+            return first, first, 0.0
+        return first, self.get(k + 1), w
+
+    def pair(self, k: int):
+        """Stored phases k and k + 1 (cyclic): the ends of one interval between phases."""
+        if self.n_phases == 1:
+            p = self.get(0)
+            return p, p
+        return self.get(k), self.get(k + 1)

@@ -22,8 +22,8 @@ import xarray as xr
 
 from .. import metrics
 from .._version import __version__
-from ..schema import mixing_dataset, validate
 from ..scene import Scene, load_scene
+from ..schema import mixing_dataset, validate
 from . import kernels, stability
 from .diffusivity import shear_diffusivity
 from .grid import AdeGrid
@@ -109,8 +109,16 @@ class MixSettings:
     def fingerprint(self) -> str:
         """A hash of the settings that change the answer (for safe resumption)."""
         keep = asdict(self)
-        for name in ("progress", "checkpoint", "checkpoint_every", "resume", "wall_time",
-                     "max_steps", "memory_budget_mb", "extra"):
+        for name in (
+            "progress",
+            "checkpoint",
+            "checkpoint_every",
+            "resume",
+            "wall_time",
+            "max_steps",
+            "memory_budget_mb",
+            "extra",
+        ):
             keep.pop(name)
         if isinstance(self.initial, xr.DataArray):
             c0 = np.ascontiguousarray(self.initial.values)
@@ -182,9 +190,7 @@ class _Fields:
 
     def __init__(self, ndim: int, shape: tuple, with_diffusion: bool, with_fill: bool):
         self.velocities = tuple(np.zeros(shape) for _ in range(ndim))
-        self.diffusivities = (
-            tuple(np.zeros(shape) for _ in range(ndim)) if with_diffusion else None
-        )
+        self.diffusivities = tuple(np.zeros(shape) for _ in range(ndim)) if with_diffusion else None
         self.fill = np.zeros(shape) if with_fill else None
         self.material = np.zeros(shape, np.uint8) if with_fill else None
         self._key = None
@@ -349,7 +355,11 @@ class _Run:
         self.dt_used = [math.inf, 0.0]
         self.max_substeps = 0
         self.records: dict[str, list] = {
-            "time": [], "rsd": [], "intensity": [], "mass_a": [], "fill_mismatch": []
+            "time": [],
+            "rsd": [],
+            "intensity": [],
+            "mass_a": [],
+            "fill_mismatch": [],
         }
         self.snapshots: dict[float, np.ndarray] = {}
         self.sampling_cell = self._sampling_cell()
@@ -396,7 +406,9 @@ class _Run:
 
     def record(self) -> None:
         c, weight = self.concentration_and_weight()
-        da = xr.DataArray(c, dims=self.grid.dims, coords=dict(zip(self.grid.dims, self.grid.coords, strict=True)))
+        da = xr.DataArray(
+            c, dims=self.grid.dims, coords=dict(zip(self.grid.dims, self.grid.coords, strict=True))
+        )
         w = xr.DataArray(weight, dims=da.dims, coords=da.coords)
         rec = self.records
         rec["time"].append(self.t)
@@ -415,7 +427,9 @@ class _Run:
             species = float(np.nansum(c * weight))
         rec["mass_a"].append(species * self.grid.cell_volume)
         if self.settings.scheme == "finite-volume":
-            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(self.state.m.sum(), 1e-300)
+            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(
+                self.state.m.sum(), 1e-300
+            )
         else:
             mismatch = 0.0
         rec["fill_mismatch"].append(float(mismatch))
@@ -434,19 +448,38 @@ class _Run:
         limits = []
         for phase in {id(a): a, id(b): b}.values():
             if s.scheme == "lax-wendroff":
-                diffs = phase.diffusivities or tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
-                material = (phase.fill >= MATERIAL_THRESHOLD)
-                limits.append(stability.lax_wendroff_max_dt(phase.velocities, diffs, self.grid.spacing, material))
+                diffs = phase.diffusivities or tuple(
+                    np.zeros(self.grid.shape) for _ in range(self.ndim)
+                )
+                material = phase.fill >= MATERIAL_THRESHOLD
+                limits.append(
+                    stability.lax_wendroff_max_dt(
+                        phase.velocities, diffs, self.grid.spacing, material
+                    )
+                )
             else:
-                limits.append(stability.finite_volume_max_dt(phase.velocities, self.grid.spacing, self.vessel))
+                limits.append(
+                    stability.finite_volume_max_dt(phase.velocities, self.grid.spacing, self.vessel)
+                )
         if a is not b:
             # component-wise maxima bound every blend of the two phases
-            vmax = tuple(np.maximum(np.abs(x), np.abs(y)) for x, y in zip(a.velocities, b.velocities, strict=True))
+            vmax = tuple(
+                np.maximum(np.abs(x), np.abs(y))
+                for x, y in zip(a.velocities, b.velocities, strict=True)
+            )
             if s.scheme == "lax-wendroff":
-                dmax = (tuple(np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True))
-                        if a.diffusivities is not None else tuple(np.zeros(self.grid.shape) for _ in range(self.ndim)))
+                dmax = (
+                    tuple(
+                        np.maximum(x, y)
+                        for x, y in zip(a.diffusivities, b.diffusivities, strict=True)
+                    )
+                    if a.diffusivities is not None
+                    else tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
+                )
                 material = (a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)
-                limits.append(stability.lax_wendroff_max_dt(vmax, dmax, self.grid.spacing, material))
+                limits.append(
+                    stability.lax_wendroff_max_dt(vmax, dmax, self.grid.spacing, material)
+                )
             else:
                 limits.append(stability.finite_volume_max_dt(vmax, self.grid.spacing, self.vessel))
         return min(limits)
@@ -459,7 +492,7 @@ class _Run:
             return
         mid = self._phase_position(self.t + 0.5 * span)
         k = math.floor(mid)
-        a, b, _ = self.reader.bracket(k)
+        a, b = self.reader.pair(k)
         limit = self._limit(a, b)
         s = self.settings
         if s.dt is not None:
@@ -477,7 +510,9 @@ class _Run:
         self.dt_used[1] = max(self.dt_used[1], dt)
         n_sub = 0
         if s.scheme == "finite-volume" and self.with_diffusion:
-            dmax = tuple(np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True))
+            dmax = tuple(
+                np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True)
+            )
             n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
             self.max_substeps = max(self.max_substeps, n_sub)
         for _ in range(n):
@@ -496,11 +531,35 @@ class _Run:
         diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
         if st.scheme == "finite-volume":
             if self.ndim == 3:
-                kernels.fv_step_3d(st.m, st.q, st.m_next, st.q_next, st.work, *f.velocities,
-                                   *diffs, self.vessel, dt, *h, st.reverse, n_sub)
+                kernels.fv_step_3d(
+                    st.m,
+                    st.q,
+                    st.m_next,
+                    st.q_next,
+                    st.work,
+                    *f.velocities,
+                    *diffs,
+                    self.vessel,
+                    dt,
+                    *h,
+                    st.reverse,
+                    n_sub,
+                )
             else:
-                kernels.fv_step_2d(st.m, st.q, st.m_next, st.q_next, st.work, *f.velocities,
-                                   *diffs, self.vessel, dt, *h, st.reverse, n_sub)
+                kernels.fv_step_2d(
+                    st.m,
+                    st.q,
+                    st.m_next,
+                    st.q_next,
+                    st.work,
+                    *f.velocities,
+                    *diffs,
+                    self.vessel,
+                    dt,
+                    *h,
+                    st.reverse,
+                    n_sub,
+                )
             st.m, st.m_next = st.m_next, st.m
             st.q, st.q_next = st.q_next, st.q
             st.reverse = not st.reverse
@@ -538,10 +597,15 @@ class _Run:
             values = c
         else:
             values = st.c
-            bad = ~np.isfinite(values) | (values < -BOUND_TOLERANCE) | (values > 1 + BOUND_TOLERANCE)
+            bad = (
+                ~np.isfinite(values) | (values < -BOUND_TOLERANCE) | (values > 1 + BOUND_TOLERANCE)
+            )
         if bad.any():
             cell = tuple(int(i) for i in np.argwhere(bad)[0])
-            where = ", ".join(f"{d}={self.grid.coords[i][j]:.4g} m" for i, (d, j) in enumerate(zip(self.grid.dims, cell, strict=True)))
+            where = ", ".join(
+                f"{d}={self.grid.coords[i][j]:.4g} m"
+                for i, (d, j) in enumerate(zip(self.grid.dims, cell, strict=True))
+            )
             raise BlowUpError(
                 f"{self.settings.scheme}: concentration {values[cell]!r} at step {self.steps}, "
                 f"t = {self.t:.6g} s, cell {cell} ({where}); dt was {self.dt_used[1]:.3g} s"
@@ -560,10 +624,17 @@ class _Run:
             arrays[f"record_{name}"] = np.asarray(values, float)
         for r, snap in self.snapshots.items():
             arrays[f"snapshot_{r!r}"] = snap.astype(float)
-        meta = {"t": self.t, "steps": self.steps, "cell_updates": self.cell_updates,
-                "reverse": int(self.state.reverse), "fingerprint": self.settings.fingerprint(),
-                "dt_min": self.dt_used[0], "dt_max": self.dt_used[1],
-                "max_substeps": self.max_substeps, "blendxr_version": __version__}
+        meta = {
+            "t": self.t,
+            "steps": self.steps,
+            "cell_updates": self.cell_updates,
+            "reverse": int(self.state.reverse),
+            "fingerprint": self.settings.fingerprint(),
+            "dt_min": self.dt_used[0],
+            "dt_max": self.dt_used[1],
+            "max_substeps": self.max_substeps,
+            "blendxr_version": __version__,
+        }
         write_checkpoint(path, arrays, meta)
 
     def load_checkpoint(self, path: Path) -> bool:
@@ -581,7 +652,7 @@ class _Run:
             self.records[name] = list(np.atleast_1d(arrays.get(f"record_{name}", [])))
         for key, values in arrays.items():
             if key.startswith("snapshot_"):
-                self.snapshots[float(key[len("snapshot_"):])] = values
+                self.snapshots[float(key[len("snapshot_") :])] = values
         self.t = float(meta["t"])
         self.steps = int(meta["steps"])
         self.cell_updates = int(meta["cell_updates"])
@@ -596,8 +667,13 @@ def _progress_bar(settings: MixSettings, total: float):
     show = settings.progress
     if show is None:
         show = os.isatty(2)
-    return tqdm(total=total, unit="rev", disable=not show, leave=False,
-                bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} rev [{elapsed}<{remaining}{postfix}]")
+    return tqdm(
+        total=total,
+        unit="rev",
+        disable=not show,
+        leave=False,
+        bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} rev [{elapsed}<{remaining}{postfix}]",
+    )
 
 
 def mix(flow, scene=None, **overrides) -> xr.Dataset:
@@ -653,8 +729,9 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
     else:
         run.initialise()
         run.record()
-    next_checkpoint = (math.floor(run.t / run.period / settings.checkpoint_every + 1e-9) + 1) \
-        * settings.checkpoint_every
+    next_checkpoint = (
+        math.floor(run.t / run.period / settings.checkpoint_every + 1e-9) + 1
+    ) * settings.checkpoint_every
     stopped_by = "revolutions"
     bar = _progress_bar(settings, settings.revolutions)
     bar.update(run.t / run.period)
@@ -713,7 +790,9 @@ def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset
         "k1": s.k1,
         "k2": s.k2,
         "d": s.d,
-        "diffusivity": "eq. (5) shear-rate" if s.diffusivity is None else f"constant {s.diffusivity}",
+        "diffusivity": "eq. (5) shear-rate"
+        if s.diffusivity is None
+        else f"constant {s.diffusivity}",
         "initial": s.initial if isinstance(s.initial, str) else "user DataArray",
         "revolutions": float(times[-1] / run.period) if len(times) else 0.0,
         "revolutions_requested": s.revolutions,
