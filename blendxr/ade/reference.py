@@ -1,0 +1,296 @@
+"""Pure-NumPy reference twins of the ADE kernels in :mod:`blendxr.ade.kernels`.
+
+Slow and written for reading, not speed: whole-array expressions, one formula per line,
+no scratch-buffer juggling. Used only by the tests, which check that each numba kernel
+gives the same numbers. Signatures mirror the kernels except that the twins return their
+result (the output arguments are filled too) and :func:`lw_step_2d`/:func:`lw_step_3d`
+take ``clip`` so the tests can look at the unclipped update.
+"""
+
+import itertools
+
+import numpy as np
+
+from .kernels import FV_M_TINY, FV_MASS_MARGIN
+
+__all__ = [
+    "concentration",
+    "fv_step_2d",
+    "fv_step_3d",
+    "lw_free_surface_2d",
+    "lw_free_surface_3d",
+    "lw_step_2d",
+    "lw_step_3d",
+]
+
+
+def _shift(a, axis, s):
+    """``b[p] = a[p + s]`` along ``axis``, zero where ``p + s`` is outside the array."""
+    b = np.zeros_like(a)
+    n = a.shape[axis]
+    dst = [slice(None)] * a.ndim
+    src = [slice(None)] * a.ndim
+    if s >= 0:
+        dst[axis] = slice(0, n - s)
+        src[axis] = slice(s, n)
+    else:
+        dst[axis] = slice(-s, n)
+        src[axis] = slice(0, n + s)
+    b[tuple(dst)] = a[tuple(src)]
+    return b
+
+
+def _inner(shape):
+    """True away from the outermost layer of cells."""
+    mask = np.zeros(shape, dtype=bool)
+    mask[tuple(slice(1, n - 1) for n in shape)] = True
+    return mask
+
+
+def _position(shape, axis):
+    """Index along ``axis`` of every cell."""
+    idx = np.arange(shape[axis]).reshape([-1 if a == axis else 1 for a in range(len(shape))])
+    return np.broadcast_to(idx, shape)
+
+
+def _interior_material(material):
+    """Cells whose whole 3x3(x3) box is material."""
+    mat = np.asarray(material) != 0
+    out = _inner(mat.shape) & mat
+    for offset in itertools.product((-1, 0, 1), repeat=mat.ndim):
+        shifted = mat
+        for axis, s in enumerate(offset):
+            if s:
+                shifted = _shift(shifted, axis, s)
+        out &= shifted
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Lax-Wendroff
+# ---------------------------------------------------------------------------------------
+
+
+def _lw_step(c, out, vels, difs, material, dt, spacing, clip):
+    ndim = c.ndim
+    nu = []
+    mu = []
+    d0 = []
+    for axis in range(ndim):
+        h = spacing[axis]
+        ddif = (_shift(difs[axis], axis, 1) - _shift(difs[axis], axis, -1)) / (2.0 * h)
+        nu.append((vels[axis] - ddif) * dt / h)
+        mu.append(difs[axis] * dt / (h * h))
+        d0.append(0.5 * (_shift(c, axis, 1) - _shift(c, axis, -1)))
+    new = c.copy()
+    for axis in range(ndim):
+        d2 = _shift(c, axis, 1) - 2.0 * c + _shift(c, axis, -1)
+        new = new - (nu[axis] * d0[axis] - (0.5 * nu[axis] ** 2 + mu[axis]) * d2)
+    # cross terms nu_x nu_y, nu_y nu_z, nu_z nu_x
+    pairs = [(0, 1)] if ndim == 2 else [(0, 1), (1, 2), (2, 0)]
+    for a, b in pairs:
+        cross = 0.5 * (_shift(d0[b], a, 1) - _shift(d0[b], a, -1))
+        new = new + nu[a] * nu[b] * cross
+    if clip:
+        new = np.clip(new, 0.0, 1.0)
+    interior = _interior_material(material)
+    out[...] = np.where(interior, new, c)
+    return out
+
+
+def lw_step_2d(c, out, vx, vy, dxx, dyy, material, dt, dx, dy, clip=True):
+    """Twin of :func:`blendxr.ade.kernels.lw_step_2d` (``clip=False`` skips the clipping)."""
+    return _lw_step(c, out, (vx, vy), (dxx, dyy), material, dt, (dx, dy), clip)
+
+
+def lw_step_3d(c, out, vx, vy, vz, dxx, dyy, dzz, material, dt, dx, dy, dz, clip=True):
+    """Twin of :func:`blendxr.ade.kernels.lw_step_3d` (``clip=False`` skips the clipping)."""
+    return _lw_step(c, out, (vx, vy, vz), (dxx, dyy, dzz), material, dt, (dx, dy, dz), clip)
+
+
+def _lw_free_surface(out, material, fill):
+    mat = np.asarray(material) != 0
+    interior = _interior_material(material)
+    surface = mat & ~interior & _inner(mat.shape)
+    before = out.copy()
+    for cell in zip(*np.nonzero(surface), strict=True):
+        normal = [
+            0.5 * (fill[tuple(p + (a == ax) for a, p in enumerate(cell))] - fill[
+                tuple(p - (a == ax) for a, p in enumerate(cell))
+            ])
+            for ax in range(mat.ndim)
+        ]  # fmt: skip
+        nmax = max(abs(n) for n in normal)
+        step = [int(np.sign(n)) if (abs(n) >= 0.5 * nmax and n != 0.0) else 0 for n in normal]
+        target = tuple(p + s for p, s in zip(cell, step, strict=True))
+        if interior[target]:
+            out[cell] = before[target]
+            continue
+        values = [
+            before[tuple(p + s for p, s in zip(cell, off, strict=True))]
+            for off in itertools.product((-1, 0, 1), repeat=mat.ndim)
+            if interior[tuple(p + s for p, s in zip(cell, off, strict=True))]
+        ]
+        if values:
+            out[cell] = sum(values) / len(values)
+    return out
+
+
+def lw_free_surface_2d(out, material, fill):
+    """Twin of :func:`blendxr.ade.kernels.lw_free_surface_2d`."""
+    return _lw_free_surface(out, material, fill)
+
+
+def lw_free_surface_3d(out, material, fill):
+    """Twin of :func:`blendxr.ade.kernels.lw_free_surface_3d`."""
+    return _lw_free_surface(out, material, fill)
+
+
+# ---------------------------------------------------------------------------------------
+# Finite volume
+# ---------------------------------------------------------------------------------------
+
+
+def _ratio(g, p):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.clip(g / p, 0.0, 1.0)
+    return np.where(p > 0.0, r, 1.0)
+
+
+def _fv_sweep(m, q, vel, dif, vessel, dt, h, axis, n_diff_sub):
+    na = m.shape[axis]
+    inner = _inner(m.shape)
+    pos = _position(m.shape, axis)
+    ves = np.asarray(vessel) != 0
+
+    def up(a):
+        return _shift(a, axis, 1)
+
+    def down(a):
+        return _shift(a, axis, -1)
+
+    # faces, stored at their lower cell p (face p + 1/2); flux positive towards +axis
+    open_face = inner & (pos <= na - 3) & ves & up(ves)
+    sgm = np.where(open_face, 0.5 * (vel + up(vel)) * (dt / h), 0.0)
+    m_up = np.where(sgm > 0.0, m, up(m))
+    m_dn = np.where(sgm > 0.0, up(m), m)
+    moving = (sgm != 0.0) & (m_up > FV_M_TINY)
+    sgm = np.where(moving, sgm, 0.0)
+    anti = np.where(moving, 0.5 * sgm * (1.0 - np.abs(sgm)) * (m_dn - m_up), 0.0)
+    f_low = sgm * m_up
+
+    # Zalesak ratios of m per cell: the lower face (l) brings flux in, the upper (r) out
+    m_l, m_r = down(m), up(m)
+    s_l, s_r = down(sgm), sgm
+    a_l, a_r = down(anti), anti
+    m_low = m + down(f_low) - f_low
+    m_top = np.maximum(np.maximum(m_l, m), np.maximum(m_r, m_low))
+    m_bot = np.minimum(np.minimum(m_l, m), np.minimum(m_r, m_low))
+    out_low = np.where(s_r > 0.0, s_r * m, 0.0) - np.where(s_l < 0.0, s_l * m, 0.0)
+    gain = np.where(a_l > 0.0, a_l, 0.0) - np.where(a_r < 0.0, a_r, 0.0)
+    loss = -np.where(a_l < 0.0, a_l, 0.0) + np.where(a_r > 0.0, a_r, 0.0)
+    loss_up = -np.where((a_l < 0.0) & (s_l < 0.0), a_l, 0.0) + np.where(
+        (a_r > 0.0) & (s_r > 0.0), a_r, 0.0
+    )
+    r_gain = _ratio(m_top - m_low, gain)
+    r_loss = _ratio(m_low - m_bot, loss)
+    r_out = _ratio(np.maximum(0.0, (1.0 - FV_MASS_MARGIN) * m - out_low), loss_up)
+    r_lup = np.minimum(r_loss, r_out)
+
+    # one coefficient per face; the losing side uses its upwind ratio if it is upwind
+    lose_lo = np.where(sgm > 0.0, r_lup, r_loss)
+    lose_hi = np.where(sgm < 0.0, up(r_lup), up(r_loss))
+    coef = np.where(anti > 0.0, np.minimum(up(r_gain), lose_lo), 0.0)
+    coef = np.where(anti < 0.0, np.minimum(r_gain, lose_hi), coef)
+    f_m = np.where(moving, f_low + coef * anti, 0.0)
+    m_new = np.where(inner, m + down(f_m) - f_m, m)
+
+    # colour of the leaving slabs: MC slope, scaled so the staying material stays in range
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(m > 0.0, q / m, 0.0)
+        c_l, c_r = down(c), up(c)
+        has_l, has_r = m_l > FV_M_TINY, m_r > FV_M_TINY
+        d_lo = np.where(has_l, c - c_l, 0.0)
+        d_hi = np.where(has_r, c_r - c, 0.0)
+        cmax = np.maximum(c, np.where(has_l, c_l, c))
+        cmax = np.maximum(cmax, np.where(has_r, c_r, c))
+        cmin = np.minimum(c, np.where(has_l, c_l, c))
+        cmin = np.minimum(cmin, np.where(has_r, c_r, c))
+        mag = np.minimum(2.0 * np.minimum(np.abs(d_lo), np.abs(d_hi)), 0.5 * np.abs(d_lo + d_hi))
+        slope = np.where(d_lo * d_hi <= 0.0, 0.0, np.where(d_lo > 0.0, mag, -mag))
+        f_l, f_r = down(f_m), f_m
+        o_r = np.where(s_r > 0.0, f_r, 0.0)
+        o_l = np.where(s_l < 0.0, -f_l, 0.0)
+        h_r = 0.5 * (1.0 - o_r / m)
+        h_l = 0.5 * (1.0 - o_l / m)
+        x = slope * (o_r * h_r - o_l * h_l)
+        stay = m - o_r - o_l
+        alpha = np.where(x > 0.0, np.minimum(1.0, stay * (c - cmin) / x), 1.0)
+        alpha = np.where(x < 0.0, np.minimum(1.0, stay * (cmax - c) / -x), alpha)
+        alpha = np.maximum(0.0, alpha)
+        col_l = c - h_l * alpha * slope
+        col_r = c + h_r * alpha * slope
+    f_q = np.where(sgm > 0.0, f_m * col_r, 0.0)
+    f_q = np.where(sgm < 0.0, f_m * up(col_l), f_q)
+    q_new = np.where(inner, q + down(f_q) - f_q, q)
+
+    # species diffusion, flux D_f m_f (c_R - c_L) through open faces
+    if n_diff_sub > 0:
+        kdiff = dt / n_diff_sub / (h * h)
+        m_face = np.minimum(m_new, up(m_new))
+        d_face = 0.5 * (dif + up(dif))
+        conducting = open_face & (m_face > FV_M_TINY)
+        active = inner & (m_new > 0.0)
+        for _ in range(n_diff_sub):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                c = np.where(m_new > 0.0, q_new / m_new, 0.0)
+            flux = np.where(conducting, d_face * m_face * (up(c) - c), 0.0)
+            q_new = np.where(active, q_new + kdiff * (flux - down(flux)), q_new)
+    return m_new, q_new
+
+
+def _fv_step(m, q, m_out, q_out, vels, difs, vessel, dt, spacing, reverse, n_diff_sub):
+    axes = list(range(m.ndim))
+    if reverse:
+        axes.reverse()
+    mm, qq = m.copy(), q.copy()
+    for axis in axes:
+        mm, qq = _fv_sweep(
+            mm, qq, vels[axis], difs[axis], vessel, dt, spacing[axis], axis, n_diff_sub
+        )
+    m_out[...] = mm
+    q_out[...] = qq
+    return m_out, q_out
+
+
+def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, reverse, n_diff_sub):
+    """Twin of :func:`blendxr.ade.kernels.fv_step_2d` (``work`` is ignored)."""
+    return _fv_step(
+        m, q, m_out, q_out, (vx, vy), (dxx, dyy), vessel, dt, (dx, dy), reverse, n_diff_sub
+    )
+
+
+def fv_step_3d(
+    m, q, m_out, q_out, work, vx, vy, vz, dxx, dyy, dzz, vessel, dt, dx, dy, dz, reverse, n_diff_sub
+):
+    """Twin of :func:`blendxr.ade.kernels.fv_step_3d` (``work`` is ignored)."""
+    return _fv_step(
+        m,
+        q,
+        m_out,
+        q_out,
+        (vx, vy, vz),
+        (dxx, dyy, dzz),
+        vessel,
+        dt,
+        (dx, dy, dz),
+        reverse,
+        n_diff_sub,
+    )
+
+
+def concentration(m, q, out, m_min):
+    """Twin of :func:`blendxr.ade.kernels.concentration`."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[...] = np.where(m > m_min, q / m, np.nan)
+    return out
