@@ -9,9 +9,10 @@ Two schemes are provided, each with a 2-D and a 3-D kernel:
 
 ``finite-volume``
     A conservative, bounded finite-volume scheme that transports the material volume
-    fraction ``m`` and the species content ``q = m c`` with the same mass fluxes
-    (dimension-split sweeps, Lax-Wendroff fluxes limited by Zalesak flux-corrected
-    transport with one coefficient per face for the pair).
+    fraction ``m`` and the species content ``q = m c`` in flux form (dimension-split
+    sweeps; m by Lax-Wendroff fluxes limited with Zalesak flux-corrected transport, q by
+    the same m fluxes times an MC-limited colour of the leaving material), so the colour
+    ``c = q / m`` stays bounded without clipping. See :func:`fv_step_3d`.
 
 All kernels take plain C-contiguous float64 arrays of shape (nx, ny) or (nx, ny, nz) in axis
 order (x, y, z) and write into caller-provided output arrays; they never allocate inside
@@ -530,7 +531,7 @@ def _diffusion_flux(m_l, q_l, m_r, q_r, d_l, d_r):
 
 
 @njit(**_JIT_INLINE)
-def _ratios_cell_3d(sm, dm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, k, oi, oj, ok, na, cfl):
+def _ratios_cell_3d(sm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, k, oi, oj, ok, na, cfl):
     """Phase 0 at one cell: Zalesak ratios of m; clears the species flux of its upper face."""
     nx, ny, nz = sm.shape
     fq[i, j, k] = 0.0
@@ -765,7 +766,7 @@ def fv_step_3d(
                     for k in range(nz):
                         if phase == 0:
                             _ratios_cell_3d(
-                                sm, dm, fq, r_gain, r_loss, r_lup,
+                                sm, fq, r_gain, r_loss, r_lup,
                                 v, vessel, i, j, k, oi, oj, ok, na, cfl,
                             )  # fmt: skip
                         elif phase == 1:
@@ -782,7 +783,7 @@ def fv_step_3d(
 
 
 @njit(**_JIT_INLINE)
-def _ratios_cell_2d(sm, dm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, oi, oj, na, cfl):
+def _ratios_cell_2d(sm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, oi, oj, na, cfl):
     """2-D twin of :func:`_ratios_cell_3d`."""
     nx, ny = sm.shape
     fq[i, j] = 0.0
@@ -950,7 +951,7 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
                 for j in range(ny):
                     if phase == 0:
                         _ratios_cell_2d(
-                            sm, dm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, oi, oj, na, cfl
+                            sm, fq, r_gain, r_loss, r_lup, v, vessel, i, j, oi, oj, na, cfl
                         )
                     elif phase == 1:
                         _mass_cell_2d(
@@ -985,7 +986,9 @@ def concentration(m, q, out, m_min):
     out : ndarray
         Receives the concentration (same shape, C-contiguous float64).
     m_min : float
-        Cells with ``m <= m_min`` hold too little material for a meaningful colour.
+        Cells with ``m <= m_min`` hold too little material for a meaningful colour; use at
+        least ``FV_M_TINY`` (below it the finite-volume scheme freezes cells and ``q`` may
+        have underflowed).
 
     Returns
     -------
