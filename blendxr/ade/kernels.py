@@ -240,6 +240,22 @@ def lw_step_3d(c, out, vx, vy, vz, dxx, dyy, dzz, material, dt, dx, dy, dz):
                 out[i, j, k] = min(1.0, max(0.0, val))
 
 
+@njit(**_JIT_SCALAR)
+def _interior_call_2d(material, i, j):
+    """Non-inlined :func:`_interior_2d` for the surface pass.
+
+    The pass uses it in three places; inlining all of them would only lengthen the
+    compilation of a pass that is cheap anyway.
+    """
+    return _interior_2d(material, i, j)
+
+
+@njit(**_JIT_SCALAR)
+def _interior_call_3d(material, i, j, k):
+    """Non-inlined :func:`_interior_3d` for the surface pass (see :func:`_interior_call_2d`)."""
+    return _interior_3d(material, i, j, k)
+
+
 @njit(**_JIT)
 def lw_free_surface_2d(out, material, fill):
     """Free-surface rule of the paper in 2-D, applied in place to ``out``.
@@ -264,21 +280,21 @@ def lw_free_surface_2d(out, material, fill):
     nx, ny = out.shape
     for i in prange(1, nx - 1):
         for j in range(1, ny - 1):
-            if material[i, j] == 0 or _interior_2d(material, i, j):
+            if material[i, j] == 0 or _interior_call_2d(material, i, j):
                 continue
             nxv = 0.5 * (fill[i + 1, j] - fill[i - 1, j])
             nyv = 0.5 * (fill[i, j + 1] - fill[i, j - 1])
             nmax = max(abs(nxv), abs(nyv))
             ti = i + _normal_offset(nxv, nmax)
             tj = j + _normal_offset(nyv, nmax)
-            if _interior_2d(material, ti, tj):
+            if _interior_call_2d(material, ti, tj):
                 out[i, j] = out[ti, tj]
                 continue
             total = 0.0
             count = 0
             for a in range(i - 1, i + 2):
                 for b in range(j - 1, j + 2):
-                    if _interior_2d(material, a, b):
+                    if _interior_call_2d(material, a, b):
                         total += out[a, b]
                         count += 1
             if count > 0:
@@ -310,7 +326,7 @@ def lw_free_surface_3d(out, material, fill):
     for i in prange(1, nx - 1):
         for j in range(1, ny - 1):
             for k in range(1, nz - 1):
-                if material[i, j, k] == 0 or _interior_3d(material, i, j, k):
+                if material[i, j, k] == 0 or _interior_call_3d(material, i, j, k):
                     continue
                 nxv = 0.5 * (fill[i + 1, j, k] - fill[i - 1, j, k])
                 nyv = 0.5 * (fill[i, j + 1, k] - fill[i, j - 1, k])
@@ -319,7 +335,7 @@ def lw_free_surface_3d(out, material, fill):
                 ti = i + _normal_offset(nxv, nmax)
                 tj = j + _normal_offset(nyv, nmax)
                 tk = k + _normal_offset(nzv, nmax)
-                if _interior_3d(material, ti, tj, tk):
+                if _interior_call_3d(material, ti, tj, tk):
                     out[i, j, k] = out[ti, tj, tk]
                     continue
                 total = 0.0
@@ -327,7 +343,7 @@ def lw_free_surface_3d(out, material, fill):
                 for a in range(i - 1, i + 2):
                     for b in range(j - 1, j + 2):
                         for e in range(k - 1, k + 2):
-                            if _interior_3d(material, a, b, e):
+                            if _interior_call_3d(material, a, b, e):
                                 total += out[a, b, e]
                                 count += 1
                 if count > 0:
