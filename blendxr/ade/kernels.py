@@ -24,6 +24,18 @@ import numpy as np
 from numba import njit, prange
 
 __all__ = [
+    "LW_EMPTY",
+    "LW_INTERIOR",
+    "LW_SURFACE",
+    "LaxWendroffPlan",
+    "lw_apply_2d",
+    "lw_apply_3d",
+    "lw_classify_2d",
+    "lw_classify_3d",
+    "lw_coefficients_2d",
+    "lw_coefficients_3d",
+    "lw_surface_2d",
+    "lw_surface_3d",
     "FV_MASS_MARGIN",
     "FV_M_TINY",
     "FV_WORK_FIELDS",
@@ -66,7 +78,20 @@ _JIT_INLINE = {"cache": True, "fastmath": False, "error_model": "numpy", "inline
 
 # ---------------------------------------------------------------------------------------
 # Lax-Wendroff (the paper's scheme)
+#
+# The hot loop is split from everything that changes only when the flow fields change:
+# ``lw_classify_*`` marks interior / surface / empty cells and the k-range of material in
+# each (i, j) row, ``lw_coefficients_*`` folds velocity, diffusivity, its gradient and dt
+# into six per-cell numbers, and ``lw_apply_*`` is the stencil alone, touching only interior
+# cells inside their row ranges. The driver refreshes the first two a few times per stored
+# phase interval and calls the last every step. ``lw_step_*`` composes them for callers
+# (and tests) that want one call per step.
 # ---------------------------------------------------------------------------------------
+
+#: Cell classes written by :func:`lw_classify_2d` / :func:`lw_classify_3d`.
+LW_EMPTY, LW_SURFACE, LW_INTERIOR = 0, 1, 2
+#: Coefficients per cell: nu_x, nu_y(, nu_z), then A_k = nu_k**2 / 2 + mu_k per axis.
+LW_COEFFICIENTS_2D, LW_COEFFICIENTS_3D = 4, 6
 
 
 @njit(**_JIT_INLINE)
@@ -105,124 +130,164 @@ def _normal_offset(n, nmax):
 
 
 @njit(**_JIT)
-def lw_step_2d(c, out, vx, vy, dxx, dyy, material, dt, dx, dy):
-    """One explicit Lax-Wendroff step of eq. (4) in 2-D (eq. (6) without the z terms).
-
-    Interior material cells (all nine cells of their 3x3 box are material) get
-
-    ``c + sum_k [-nu_k D0_k c + (nu_k**2 / 2 + mu_k) d2_k c] + nu_x nu_y D0_x D0_y c``
-
-    clipped to [0, 1], with ``nu_k = (v_k - dD_kk/dx_k) dt / h_k`` (the effective advection
-    velocity of eq. (4)), ``mu_k = D_kk dt / h_k**2``, ``D0`` the half central difference,
-    ``d2`` the second difference and ``D0_x D0_y`` the cross difference of eq. (19). Every
-    other cell is copied from ``c`` (free-surface cells are set afterwards by
-    :func:`lw_free_surface_2d`).
+def lw_classify_2d(material, cls, rows):
+    """Classify cells and find each row's material range (2-D).
 
     Parameters
     ----------
-    c : ndarray, shape (nx, ny)
-        Concentration at step n.
-    out : ndarray, shape (nx, ny)
-        Receives the concentration at step n + 1.
-    vx, vy : ndarray, shape (nx, ny)
-        Velocity components (m/s).
-    dxx, dyy : ndarray, shape (nx, ny)
-        Diagonal diffusivities (m^2/s).
     material : ndarray of uint8, shape (nx, ny)
-        1 where the cell holds material at this step.
-    dt, dx, dy : float
-        Time step (s) and grid spacing (m).
+        1 where the cell holds material.
+    cls : ndarray of uint8, shape (nx, ny)
+        Receives LW_INTERIOR (all 9 cells of the box are material), LW_SURFACE (material,
+        not interior) or LW_EMPTY.
+    rows : ndarray of int64, shape (nx, 2)
+        Receives, per row i, the half-open j-range holding every material cell ((0, 0)
+        for a row without material).
     """
-    nx, ny = c.shape
+    nx, ny = material.shape
+    for i in prange(nx):
+        lo, hi = ny, 0
+        for j in range(ny):
+            if material[i, j] == 0:
+                cls[i, j] = LW_EMPTY
+                continue
+            cls[i, j] = LW_INTERIOR if _interior_2d(material, i, j) else LW_SURFACE
+            lo = min(lo, j)
+            hi = j + 1
+        rows[i, 0] = lo if hi > 0 else 0
+        rows[i, 1] = hi
+
+
+@njit(**_JIT)
+def lw_classify_3d(material, cls, rows):
+    """Classify cells and find each (i, j) row's material range (3-D).
+
+    As :func:`lw_classify_2d`, with the 27-cell box and ``rows`` of shape (nx, ny, 2)
+    holding the half-open k-range per (i, j).
+    """
+    nx, ny, nz = material.shape
     for i in prange(nx):
         for j in range(ny):
-            if not _interior_2d(material, i, j):
-                out[i, j] = c[i, j]
+            lo, hi = nz, 0
+            for k in range(nz):
+                if material[i, j, k] == 0:
+                    cls[i, j, k] = LW_EMPTY
+                    continue
+                cls[i, j, k] = LW_INTERIOR if _interior_3d(material, i, j, k) else LW_SURFACE
+                lo = min(lo, k)
+                hi = k + 1
+            rows[i, j, 0] = lo if hi > 0 else 0
+            rows[i, j, 1] = hi
+
+
+@njit(**_JIT)
+def lw_coefficients_2d(vx, vy, dxx, dyy, cls, dt, dx, dy, coef):
+    """Per-cell coefficients of eq. (6) for interior cells (2-D).
+
+    ``coef[0:2]`` = nu_k = (v_k - dD_kk/dx_k) dt / h_k (eq. 7-8 as they should read: the
+    effective velocity of eq. 4, gradient by central differences, eq. 22-23) and
+    ``coef[2:4]`` = nu_k**2 / 2 + mu_k with mu_k = D_kk dt / h_k**2 (eq. 10-11).
+    Other cells are left as they are (never read).
+    """
+    nx, ny = cls.shape
+    for i in prange(1, nx - 1):
+        for j in range(1, ny - 1):
+            if cls[i, j] != LW_INTERIOR:
                 continue
-            c0 = c[i, j]
             nux = (vx[i, j] - (dxx[i + 1, j] - dxx[i - 1, j]) / (2.0 * dx)) * dt / dx
             nuy = (vy[i, j] - (dyy[i, j + 1] - dyy[i, j - 1]) / (2.0 * dy)) * dt / dy
-            mux = dxx[i, j] * dt / (dx * dx)
-            muy = dyy[i, j] * dt / (dy * dy)
-            d0x = 0.5 * (c[i + 1, j] - c[i - 1, j])
-            d0y = 0.5 * (c[i, j + 1] - c[i, j - 1])
-            d2x = c[i + 1, j] - 2.0 * c0 + c[i - 1, j]
-            d2y = c[i, j + 1] - 2.0 * c0 + c[i, j - 1]
-            dxy = 0.25 * (c[i + 1, j + 1] - c[i - 1, j + 1] - c[i + 1, j - 1] + c[i - 1, j - 1])
+            coef[0, i, j] = nux
+            coef[1, i, j] = nuy
+            coef[2, i, j] = 0.5 * nux * nux + dxx[i, j] * dt / (dx * dx)
+            coef[3, i, j] = 0.5 * nuy * nuy + dyy[i, j] * dt / (dy * dy)
+
+
+@njit(**_JIT)
+def lw_coefficients_3d(vx, vy, vz, dxx, dyy, dzz, cls, dt, dx, dy, dz, coef):
+    """Per-cell coefficients of eq. (6) for interior cells (3-D); see the 2-D version."""
+    nx, ny, nz = cls.shape
+    for i in prange(1, nx - 1):
+        for j in range(1, ny - 1):
+            for k in range(1, nz - 1):
+                if cls[i, j, k] != LW_INTERIOR:
+                    continue
+                nux = (vx[i, j, k] - (dxx[i + 1, j, k] - dxx[i - 1, j, k]) / (2.0 * dx)) * dt / dx
+                nuy = (vy[i, j, k] - (dyy[i, j + 1, k] - dyy[i, j - 1, k]) / (2.0 * dy)) * dt / dy
+                nuz = (vz[i, j, k] - (dzz[i, j, k + 1] - dzz[i, j, k - 1]) / (2.0 * dz)) * dt / dz
+                coef[0, i, j, k] = nux
+                coef[1, i, j, k] = nuy
+                coef[2, i, j, k] = nuz
+                coef[3, i, j, k] = 0.5 * nux * nux + dxx[i, j, k] * dt / (dx * dx)
+                coef[4, i, j, k] = 0.5 * nuy * nuy + dyy[i, j, k] * dt / (dy * dy)
+                coef[5, i, j, k] = 0.5 * nuz * nuz + dzz[i, j, k] * dt / (dz * dz)
+
+
+@njit(**_JIT)
+def lw_apply_2d(c, out, coef, cls, rows):
+    """The Lax-Wendroff stencil on interior cells only (2-D).
+
+    ``out = c - sum_k [nu_k D0_k c - A_k d2_k c] + nu_x nu_y D0_x D0_y c``, clipped to
+    [0, 1]. Cells that are not interior are not written: the caller keeps them equal in
+    both buffers (surface cells are set by :func:`lw_surface_2d` every step).
+    """
+    nx, ny = c.shape
+    for i in prange(1, nx - 1):
+        for j in range(max(rows[i, 0], 1), min(rows[i, 1], ny - 1)):
+            if cls[i, j] != LW_INTERIOR:
+                continue
+            c0 = c[i, j]
+            nux = coef[0, i, j]
+            nuy = coef[1, i, j]
             val = (
                 c0
-                - (nux * d0x - (0.5 * nux * nux + mux) * d2x)
-                - (nuy * d0y - (0.5 * nuy * nuy + muy) * d2y)
-                + nux * nuy * dxy
+                - nux * 0.5 * (c[i + 1, j] - c[i - 1, j])
+                + coef[2, i, j] * (c[i + 1, j] - 2.0 * c0 + c[i - 1, j])
+                - nuy * 0.5 * (c[i, j + 1] - c[i, j - 1])
+                + coef[3, i, j] * (c[i, j + 1] - 2.0 * c0 + c[i, j - 1])
+                + nux
+                * nuy
+                * 0.25
+                * (c[i + 1, j + 1] - c[i - 1, j + 1] - c[i + 1, j - 1] + c[i - 1, j - 1])
             )
             out[i, j] = min(1.0, max(0.0, val))
 
 
 @njit(**_JIT)
-def lw_step_3d(c, out, vx, vy, vz, dxx, dyy, dzz, material, dt, dx, dy, dz):
-    """One explicit Lax-Wendroff step of eq. (4) in 3-D: eq. (6) as it should read.
+def lw_apply_3d(c, out, coef, cls, rows):
+    """The Lax-Wendroff stencil on interior cells only (3-D); see the 2-D version.
 
-    Interior material cells (all 27 cells of their 3x3x3 box are material) get
-
-    ``c - sum_k [nu_k D0_k c - (nu_k**2 / 2 + mu_k) d2_k c]
-    + nu_x nu_y D0_x D0_y c + nu_y nu_z D0_y D0_z c + nu_z nu_x D0_z D0_x c``
-
-    clipped to [0, 1], with ``nu_k = (v_k - dD_kk/dx_k) dt / h_k`` (``dD_kk/dx_k`` by central
-    differences, eq. (22)-(24)), ``mu_k = D_kk dt / h_k**2``, ``D0`` the half central
-    difference (eq. (13)-(15)), ``d2`` the second difference (eq. (16)-(18)) and the cross
-    differences of eq. (19)-(21), with i, j, k indexing x, y, z. The update is
-    ``c + dt c_t + dt**2 / 2 c_tt`` with ``c_t = -a . grad c + sum_k D_kk c_kk`` and
-    ``c_tt ~ (a . grad)**2 c``, ``a`` the effective velocity. Every other cell is copied
-    from ``c`` (free-surface cells are set afterwards by :func:`lw_free_surface_3d`).
-
-    Parameters
-    ----------
-    c : ndarray, shape (nx, ny, nz)
-        Concentration at step n.
-    out : ndarray, shape (nx, ny, nz)
-        Receives the concentration at step n + 1.
-    vx, vy, vz : ndarray, shape (nx, ny, nz)
-        Velocity components (m/s).
-    dxx, dyy, dzz : ndarray, shape (nx, ny, nz)
-        Diagonal diffusivities (m^2/s).
-    material : ndarray of uint8, shape (nx, ny, nz)
-        1 where the cell holds material at this step.
-    dt, dx, dy, dz : float
-        Time step (s) and grid spacing (m).
+    Adds the three cross terms nu_x nu_y D0_x D0_y c, nu_y nu_z D0_y D0_z c and
+    nu_z nu_x D0_z D0_x c of eq. (6), (19)-(21).
     """
     nx, ny, nz = c.shape
-    for i in prange(nx):
-        for j in range(ny):
-            for k in range(nz):
-                if not _interior_3d(material, i, j, k):
-                    out[i, j, k] = c[i, j, k]
+    for i in prange(1, nx - 1):
+        for j in range(1, ny - 1):
+            for k in range(max(rows[i, j, 0], 1), min(rows[i, j, 1], nz - 1)):
+                if cls[i, j, k] != LW_INTERIOR:
                     continue
                 c0 = c[i, j, k]
-                nux = (vx[i, j, k] - (dxx[i + 1, j, k] - dxx[i - 1, j, k]) / (2.0 * dx)) * dt / dx
-                nuy = (vy[i, j, k] - (dyy[i, j + 1, k] - dyy[i, j - 1, k]) / (2.0 * dy)) * dt / dy
-                nuz = (vz[i, j, k] - (dzz[i, j, k + 1] - dzz[i, j, k - 1]) / (2.0 * dz)) * dt / dz
-                mux = dxx[i, j, k] * dt / (dx * dx)
-                muy = dyy[i, j, k] * dt / (dy * dy)
-                muz = dzz[i, j, k] * dt / (dz * dz)
-                d0x = 0.5 * (c[i + 1, j, k] - c[i - 1, j, k])
-                d0y = 0.5 * (c[i, j + 1, k] - c[i, j - 1, k])
-                d0z = 0.5 * (c[i, j, k + 1] - c[i, j, k - 1])
-                d2x = c[i + 1, j, k] - 2.0 * c0 + c[i - 1, j, k]
-                d2y = c[i, j + 1, k] - 2.0 * c0 + c[i, j - 1, k]
-                d2z = c[i, j, k + 1] - 2.0 * c0 + c[i, j, k - 1]
-                dxy = 0.25 * (
+                nux = coef[0, i, j, k]
+                nuy = coef[1, i, j, k]
+                nuz = coef[2, i, j, k]
+                xp = c[i + 1, j, k]
+                xm = c[i - 1, j, k]
+                yp = c[i, j + 1, k]
+                ym = c[i, j - 1, k]
+                zp = c[i, j, k + 1]
+                zm = c[i, j, k - 1]
+                dxy = (
                     c[i + 1, j + 1, k]
                     - c[i - 1, j + 1, k]
                     - c[i + 1, j - 1, k]
                     + c[i - 1, j - 1, k]
                 )
-                dyz = 0.25 * (
+                dyz = (
                     c[i, j + 1, k + 1]
                     - c[i, j - 1, k + 1]
                     - c[i, j + 1, k - 1]
                     + c[i, j - 1, k - 1]
                 )
-                dzx = 0.25 * (
+                dzx = (
                     c[i + 1, j, k + 1]
                     - c[i - 1, j, k + 1]
                     - c[i + 1, j, k - 1]
@@ -230,71 +295,44 @@ def lw_step_3d(c, out, vx, vy, vz, dxx, dyy, dzz, material, dt, dx, dy, dz):
                 )
                 val = (
                     c0
-                    - (nux * d0x - (0.5 * nux * nux + mux) * d2x)
-                    - (nuy * d0y - (0.5 * nuy * nuy + muy) * d2y)
-                    - (nuz * d0z - (0.5 * nuz * nuz + muz) * d2z)
-                    + nux * nuy * dxy
-                    + nuy * nuz * dyz
-                    + nuz * nux * dzx
+                    - 0.5 * (nux * (xp - xm) + nuy * (yp - ym) + nuz * (zp - zm))
+                    + coef[3, i, j, k] * (xp - 2.0 * c0 + xm)
+                    + coef[4, i, j, k] * (yp - 2.0 * c0 + ym)
+                    + coef[5, i, j, k] * (zp - 2.0 * c0 + zm)
+                    + 0.25 * (nux * nuy * dxy + nuy * nuz * dyz + nuz * nux * dzx)
                 )
                 out[i, j, k] = min(1.0, max(0.0, val))
 
 
-@njit(**_JIT_SCALAR)
-def _interior_call_2d(material, i, j):
-    """Non-inlined :func:`_interior_2d` for the surface pass.
-
-    The pass uses it in three places; inlining all of them would only lengthen the
-    compilation of a pass that is cheap anyway.
-    """
-    return _interior_2d(material, i, j)
-
-
-@njit(**_JIT_SCALAR)
-def _interior_call_3d(material, i, j, k):
-    """Non-inlined :func:`_interior_3d` for the surface pass (see :func:`_interior_call_2d`)."""
-    return _interior_3d(material, i, j, k)
-
-
 @njit(**_JIT)
-def lw_free_surface_2d(out, material, fill):
+def lw_surface_2d(out, cls, rows, fill):
     """Free-surface rule of the paper in 2-D, applied in place to ``out``.
 
-    Every material cell that is not interior (its 3x3 box holds a non-material cell) takes
-    the value of ``out`` at the cell one step inward along the surface normal
-    ``n = grad(fill)`` (central differences in index space; the step along axis k is
-    ``sign(n_k)`` where ``|n_k| >= max_k |n_k| / 2``, else 0). If that cell is not an
-    interior material cell, the mean of the interior material cells of the box is used;
-    if there are none, the value is kept. Only interior cells are read and only
-    non-interior cells are written, so the single parallel pass is free of races.
-
-    Parameters
-    ----------
-    out : ndarray, shape (nx, ny)
-        Concentration after :func:`lw_step_2d`; surface cells are overwritten.
-    material : ndarray of uint8, shape (nx, ny)
-        1 where the cell holds material.
-    fill : ndarray, shape (nx, ny)
-        Material volume fraction, used for the surface normal only.
+    Every surface cell takes the value of ``out`` at the cell one step inward along the
+    surface normal ``n = grad(fill)`` (central differences in index space; the step along
+    axis k is ``sign(n_k)`` where ``|n_k| >= max_k |n_k| / 2``, else 0). If that cell is
+    not interior, the mean of the interior cells of the box is used; if there are none,
+    the value is kept. Only interior cells are read and only surface cells written, so
+    the parallel pass is free of races.
     """
     nx, ny = out.shape
     for i in prange(1, nx - 1):
-        for j in range(1, ny - 1):
-            if material[i, j] == 0 or _interior_call_2d(material, i, j):
+        for j in range(max(rows[i, 0], 1), min(rows[i, 1], ny - 1)):
+            if cls[i, j] != LW_SURFACE:
                 continue
             nxv = 0.5 * (fill[i + 1, j] - fill[i - 1, j])
             nyv = 0.5 * (fill[i, j + 1] - fill[i, j - 1])
             nmax = max(abs(nxv), abs(nyv))
             ti = i + _normal_offset(nxv, nmax)
             tj = j + _normal_offset(nyv, nmax)
-            if _interior_call_2d(material, ti, tj):
+            if cls[ti, tj] == LW_INTERIOR:
                 out[i, j] = out[ti, tj]
                 continue
             total = 0.0
             count = 0
             for a in range(i - 1, i + 2):
                 for b in range(j - 1, j + 2):
-                    if _interior_call_2d(material, a, b):
+                    if cls[a, b] == LW_INTERIOR:
                         total += out[a, b]
                         count += 1
             if count > 0:
@@ -302,31 +340,13 @@ def lw_free_surface_2d(out, material, fill):
 
 
 @njit(**_JIT)
-def lw_free_surface_3d(out, material, fill):
-    """Free-surface rule of the paper in 3-D, applied in place to ``out``.
-
-    Every material cell that is not interior (its 3x3x3 box holds a non-material cell)
-    takes the value of ``out`` at the cell one step inward along the surface normal
-    ``n = grad(fill)`` (central differences in index space; the step along axis k is
-    ``sign(n_k)`` where ``|n_k| >= max_k |n_k| / 2``, else 0). If that cell is not an
-    interior material cell, the mean of the interior material cells of the box is used;
-    if there are none, the value is kept. Only interior cells are read and only
-    non-interior cells are written, so the single parallel pass is free of races.
-
-    Parameters
-    ----------
-    out : ndarray, shape (nx, ny, nz)
-        Concentration after :func:`lw_step_3d`; surface cells are overwritten.
-    material : ndarray of uint8, shape (nx, ny, nz)
-        1 where the cell holds material.
-    fill : ndarray, shape (nx, ny, nz)
-        Material volume fraction, used for the surface normal only.
-    """
+def lw_surface_3d(out, cls, rows, fill):
+    """Free-surface rule of the paper in 3-D; see :func:`lw_surface_2d`."""
     nx, ny, nz = out.shape
     for i in prange(1, nx - 1):
         for j in range(1, ny - 1):
-            for k in range(1, nz - 1):
-                if material[i, j, k] == 0 or _interior_call_3d(material, i, j, k):
+            for k in range(max(rows[i, j, 0], 1), min(rows[i, j, 1], nz - 1)):
+                if cls[i, j, k] != LW_SURFACE:
                     continue
                 nxv = 0.5 * (fill[i + 1, j, k] - fill[i - 1, j, k])
                 nyv = 0.5 * (fill[i, j + 1, k] - fill[i, j - 1, k])
@@ -335,7 +355,7 @@ def lw_free_surface_3d(out, material, fill):
                 ti = i + _normal_offset(nxv, nmax)
                 tj = j + _normal_offset(nyv, nmax)
                 tk = k + _normal_offset(nzv, nmax)
-                if _interior_call_3d(material, ti, tj, tk):
+                if cls[ti, tj, tk] == LW_INTERIOR:
                     out[i, j, k] = out[ti, tj, tk]
                     continue
                 total = 0.0
@@ -343,11 +363,97 @@ def lw_free_surface_3d(out, material, fill):
                 for a in range(i - 1, i + 2):
                     for b in range(j - 1, j + 2):
                         for e in range(k - 1, k + 2):
-                            if _interior_call_3d(material, a, b, e):
+                            if cls[a, b, e] == LW_INTERIOR:
                                 total += out[a, b, e]
                                 count += 1
                 if count > 0:
                     out[i, j, k] = total / count
+
+
+class LaxWendroffPlan:
+    """Buffers for the split Lax-Wendroff kernels on one grid (allocated once).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Grid shape, 2-D or 3-D.
+    """
+
+    def __init__(self, shape):
+        ndim = len(shape)
+        self.ndim = ndim
+        self.cls = np.zeros(shape, np.uint8)
+        self.rows = np.zeros((*shape[:-1], 2), np.int64)
+        n_coef = LW_COEFFICIENTS_3D if ndim == 3 else LW_COEFFICIENTS_2D
+        self.coef = np.zeros((n_coef, *shape))
+
+    def classify(self, material):
+        """Mark interior, surface and empty cells from a material mask."""
+        (lw_classify_3d if self.ndim == 3 else lw_classify_2d)(material, self.cls, self.rows)
+
+    def coefficients(self, velocities, diffusivities, dt, spacing):
+        """Fold the fields and dt into the per-cell coefficients (after :meth:`classify`)."""
+        if self.ndim == 3:
+            lw_coefficients_3d(*velocities, *diffusivities, self.cls, dt, *spacing, self.coef)
+        else:
+            lw_coefficients_2d(*velocities, *diffusivities, self.cls, dt, *spacing, self.coef)
+
+    def apply(self, c, out):
+        """One step of the stencil on interior cells, ``c`` -> ``out``."""
+        (lw_apply_3d if self.ndim == 3 else lw_apply_2d)(c, out, self.coef, self.cls, self.rows)
+
+    def surface(self, out, fill):
+        """The free-surface copy, in place on ``out``."""
+        (lw_surface_3d if self.ndim == 3 else lw_surface_2d)(out, self.cls, self.rows, fill)
+
+    def interior_cells(self) -> int:
+        """Number of cells the stencil updates."""
+        return int(np.count_nonzero(self.cls == LW_INTERIOR))
+
+
+def lw_step_2d(c, out, vx, vy, dxx, dyy, material, dt, dx, dy):
+    """One explicit Lax-Wendroff step of eq. (4) in 2-D (eq. 6 as it should read).
+
+    Interior material cells (all 9 cells of their box are material) get
+    ``c - sum_k [nu_k D0_k c - (nu_k**2 / 2 + mu_k) d2_k c] + nu_x nu_y D0_x D0_y c``
+    clipped to [0, 1], with ``nu_k = (v_k - dD_kk/dx_k) dt / h_k``, ``mu_k = D_kk dt / h_k**2``;
+    every other cell is copied from ``c`` (surface cells are then set by
+    :func:`lw_free_surface_2d`). A convenience composition of the split kernels; it
+    allocates its plan, so time loops use :class:`LaxWendroffPlan` instead.
+    """
+    plan = LaxWendroffPlan(c.shape)
+    plan.classify(material)
+    plan.coefficients((vx, vy), (dxx, dyy), dt, (dx, dy))
+    out[...] = c
+    plan.apply(c, out)
+
+
+def lw_step_3d(c, out, vx, vy, vz, dxx, dyy, dzz, material, dt, dx, dy, dz):
+    """One explicit Lax-Wendroff step of eq. (4) in 3-D (eq. 6 as it should read).
+
+    As :func:`lw_step_2d`, with the 27-cell box and the three cross terms of eq. (19)-(21).
+    The update is ``c + dt c_t + dt**2 / 2 c_tt`` with ``c_t = -a . grad c + sum_k D_kk
+    c_kk`` and ``c_tt ~ (a . grad)**2 c``, ``a`` the effective velocity of eq. (4).
+    """
+    plan = LaxWendroffPlan(c.shape)
+    plan.classify(material)
+    plan.coefficients((vx, vy, vz), (dxx, dyy, dzz), dt, (dx, dy, dz))
+    out[...] = c
+    plan.apply(c, out)
+
+
+def lw_free_surface_2d(out, material, fill):
+    """The paper's free-surface rule on ``out`` given a material mask (2-D)."""
+    plan = LaxWendroffPlan(out.shape)
+    plan.classify(material)
+    plan.surface(out, fill)
+
+
+def lw_free_surface_3d(out, material, fill):
+    """The paper's free-surface rule on ``out`` given a material mask (3-D)."""
+    plan = LaxWendroffPlan(out.shape)
+    plan.classify(material)
+    plan.surface(out, fill)
 
 
 # ---------------------------------------------------------------------------------------

@@ -73,6 +73,7 @@ class MixSettings:
     wall_time: float | None = None
     max_steps: int | None = None
     check_every: int = 25
+    refresh_per_phase: int | None = 8
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -90,6 +91,12 @@ class MixSettings:
             faults.append(f"k2 = {self.k2!r} is out of range; allowed: >= 0")
         if self.safety > 1:
             faults.append(f"safety = {self.safety!r} is out of range; allowed: (0, 1]")
+        if self.refresh_per_phase is not None and not (
+            isinstance(self.refresh_per_phase, int) and self.refresh_per_phase >= 1
+        ):
+            faults.append(
+                f"refresh_per_phase = {self.refresh_per_phase!r}: needs an integer >= 1 or None"
+            )
         if self.dt is not None and not (self.dt > 0):
             faults.append(f"dt = {self.dt!r} is out of range; allowed: > 0")
         if isinstance(self.initial, str) and self.initial not in LOADINGS:
@@ -195,11 +202,11 @@ class _Fields:
         self.material = np.zeros(shape, np.uint8) if with_fill else None
         self._key = None
 
-    def blend(self, a, b, w: float) -> None:
-        """Fields at weight w between prepared phases a and b."""
+    def blend(self, a, b, w: float) -> bool:
+        """Fields at weight w between prepared phases a and b; False if already there."""
         key = (a.index, b.index, w if a is not b else 0.0)
         if key == self._key:
-            return
+            return False
         self._key = key
 
         def mix_into(out, x, y):
@@ -218,6 +225,7 @@ class _Fields:
         if self.fill is not None:
             mix_into(self.fill, a.fill, b.fill)
             np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
+        return True
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -349,6 +357,11 @@ class _Run:
         self.fields = _Fields(
             self.ndim, self.grid.shape, self.with_diffusion, with_fill=s.scheme == "lax-wendroff"
         )
+        self.lw_plan = (
+            kernels.LaxWendroffPlan(self.grid.shape) if s.scheme == "lax-wendroff" else None
+        )
+        self._lw_dt = None
+        self._active = None
         self.t = 0.0
         self.steps = 0
         self.cell_updates = 0
@@ -515,61 +528,67 @@ class _Run:
             )
             n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
             self.max_substeps = max(self.max_substeps, n_sub)
-        for _ in range(n):
-            t_mid = self.t + 0.5 * dt
-            w = self._phase_position(t_mid) - k
-            self.fields.blend(a, b, min(max(w, 0.0), 1.0) if a is not b else 0.0)
-            self._step(dt, n_sub)
-            self.t += dt
-            self.steps += 1
-            if self.steps % s.check_every == 0:
-                self.check()
+        # Flow fields (and the scheme's per-cell coefficients) are refreshed in blocks of
+        # steps, each at its block's midpoint time: piecewise-constant coefficients in time,
+        # second-order in the block length (docs/numerics.md).
+        steady = a is b
+        blocks = (
+            1 if steady else (n if s.refresh_per_phase is None else min(n, s.refresh_per_phase))
+        )
+        t0 = self.t
+        for block in range(blocks):
+            first, last = (block * n) // blocks, ((block + 1) * n) // blocks
+            t_mid = t0 + 0.5 * (first + last) * dt
+            w = 0.0 if steady else min(max(self._phase_position(t_mid) - k, 0.0), 1.0)
+            self._refresh(a, b, w, dt)
+            for _ in range(last - first):
+                self._step(dt, n_sub)
+                self.t += dt
+                self.steps += 1
+                if self.steps % s.check_every == 0:
+                    self.check()
         self.t = t_end
+
+    def _refresh(self, a, b, w: float, dt: float) -> None:
+        """Blend the flow fields at weight w and prepare the scheme's per-cell data."""
+        f = self.fields
+        changed = f.blend(a, b, w)
+        if self.settings.scheme != "lax-wendroff":
+            return
+        if changed or dt != self._lw_dt:
+            plan, st = self.lw_plan, self.state
+            plan.classify(f.material)
+            diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
+            plan.coefficients(f.velocities, diffs, dt, self.grid.spacing)
+            np.copyto(st.c_next, st.c)  # cells the stencil skips stay equal in both buffers
+            self._active = plan.interior_cells()
+            self._lw_dt = dt
 
     def _step(self, dt: float, n_sub: int) -> None:
         st, f, h = self.state, self.fields, self.grid.spacing
-        diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
         if st.scheme == "finite-volume":
-            if self.ndim == 3:
-                kernels.fv_step_3d(
-                    st.m,
-                    st.q,
-                    st.m_next,
-                    st.q_next,
-                    st.work,
-                    *f.velocities,
-                    *diffs,
-                    self.vessel,
-                    dt,
-                    *h,
-                    st.reverse,
-                    n_sub,
-                )
-            else:
-                kernels.fv_step_2d(
-                    st.m,
-                    st.q,
-                    st.m_next,
-                    st.q_next,
-                    st.work,
-                    *f.velocities,
-                    *diffs,
-                    self.vessel,
-                    dt,
-                    *h,
-                    st.reverse,
-                    n_sub,
-                )
+            diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
+            step = kernels.fv_step_3d if self.ndim == 3 else kernels.fv_step_2d
+            step(
+                st.m,
+                st.q,
+                st.m_next,
+                st.q_next,
+                st.work,
+                *f.velocities,
+                *diffs,
+                self.vessel,
+                dt,
+                *h,
+                st.reverse,
+                n_sub,
+            )
             st.m, st.m_next = st.m_next, st.m
             st.q, st.q_next = st.q_next, st.q
             st.reverse = not st.reverse
         else:
-            if self.ndim == 3:
-                kernels.lw_step_3d(st.c, st.c_next, *f.velocities, *diffs, f.material, dt, *h)
-                kernels.lw_free_surface_3d(st.c_next, f.material, f.fill)
-            else:
-                kernels.lw_step_2d(st.c, st.c_next, *f.velocities, *diffs, f.material, dt, *h)
-                kernels.lw_free_surface_2d(st.c_next, f.material, f.fill)
+            self.lw_plan.apply(st.c, st.c_next)
+            self.lw_plan.surface(st.c_next, f.fill)
             st.c, st.c_next = st.c_next, st.c
         self.cell_updates += self._active_cells()
 
@@ -580,10 +599,9 @@ class _Run:
 
     def _active_cells(self) -> int:
         if self.settings.scheme == "finite-volume":
-            if self.steps % 50 == 0 or not hasattr(self, "_active"):
+            if self.steps % 50 == 0 or self._active is None:
                 self._active = int(np.count_nonzero(self.state.m > M_MIN))
-            return self._active
-        return int(np.count_nonzero(self.fields.material))
+        return self._active
 
     def check(self) -> None:
         """Stop with the step and cell if c is non-finite or far outside [0, 1]."""
@@ -700,7 +718,8 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
         (m, scale of scrutiny), ``safety`` (fraction of the stable dt), ``dt`` (s; refused
         above the stability limit), ``memory_budget_mb``, ``progress``, ``checkpoint``
         (path), ``checkpoint_every`` (revolutions), ``resume``, ``wall_time`` (s),
-        ``max_steps``.
+        ``max_steps``, ``refresh_per_phase`` (flow-field updates per stored-phase
+        interval, default 8; None updates them every step).
 
     Returns
     -------
