@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from blendxr.ade import kernels, reference
+from blendxr.ade import kernels, reference, stability
 from blendxr.ade.diffusivity import shear_diffusivity, shear_rates
 from blendxr.ade.stability import (
     diffusion_substeps,
@@ -603,3 +603,73 @@ def test_shear_rate_differences_central_inside_one_sided_at_surface():
     np.testing.assert_allclose(gy[:, 2], np.full(shape[0], (y[3] ** 2 - y[2] ** 2) / h[1]))
     np.testing.assert_allclose(gy[:, 7], np.full(shape[0], (y[7] ** 2 - y[6] ** 2) / h[1]))
     assert not gy[:, :2].any() and not gy[:, 8:].any()
+
+
+# ---------------------------------------------------------------------------------------
+# Driver-side kernels: classification, blending, pair limits
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_lax_wendroff_classes_match_binary_erosion(ndim):
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    shape = (13, 11, 9)[:ndim]
+    material = (rng.uniform(size=shape) > 0.25).astype(np.uint8)
+    plan = kernels.LaxWendroffPlan(shape)
+    plan.classify(material)
+    box = np.ones((3,) * ndim, bool)
+    interior = ndimage.binary_erosion(material.astype(bool), box, border_value=0)
+    expected = np.where(interior, kernels.LW_INTERIOR, material * kernels.LW_SURFACE)
+    np.testing.assert_array_equal(plan.cls, expected)
+    # every material cell lies inside its row's range
+    rows = plan.rows
+    for index in np.argwhere(material):
+        lo, hi = rows[tuple(index[:-1])]
+        assert lo <= index[-1] < hi
+
+
+def test_lerp_into_is_linear_interpolation():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(2, 1000))
+    out = np.empty(1000)
+    kernels.lerp_into(out, a, b, 0.3)
+    np.testing.assert_allclose(out, 0.7 * a + 0.3 * b, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_pair_limits_equal_numpy_limits_for_one_phase(ndim):
+    rng = np.random.default_rng(5)
+    shape = (9, 8, 7)[:ndim]
+    vel = rng.normal(size=(ndim, *shape))
+    dif = rng.uniform(0.0, 0.1, size=(ndim, *shape))
+    material = (rng.uniform(size=shape) > 0.3).astype(np.uint8)
+    spacing = tuple(rng.uniform(0.5, 1.5, ndim))
+    pair = kernels.lw_max_dt_pair_3d if ndim == 3 else kernels.lw_max_dt_pair_2d
+    got = pair(vel, dif, vel, dif, material, *spacing)
+    want = stability.lax_wendroff_max_dt(tuple(vel), tuple(dif), spacing, material)
+    assert got == pytest.approx(want, rel=1e-12)
+    vessel = (rng.uniform(size=shape) > 0.2).astype(np.uint8)
+    got = kernels.fv_max_dt_pair(vel, vel, vessel, np.asarray(spacing))
+    want = stability.finite_volume_max_dt(tuple(vel), spacing, vessel)
+    assert got == pytest.approx(want, rel=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_pair_limits_bound_every_blend_of_two_phases(ndim):
+    rng = np.random.default_rng(6)
+    shape = (9, 8, 7)[:ndim]
+    vel_a, vel_b = rng.normal(size=(2, ndim, *shape))
+    dif_a, dif_b = rng.uniform(0.0, 0.1, size=(2, ndim, *shape))
+    material = np.ones(shape, np.uint8)
+    vessel = np.ones(shape, np.uint8)
+    spacing = (1.0,) * ndim
+    pair = kernels.lw_max_dt_pair_3d if ndim == 3 else kernels.lw_max_dt_pair_2d
+    lw = pair(vel_a, dif_a, vel_b, dif_b, material, *spacing)
+    fv = kernels.fv_max_dt_pair(vel_a, vel_b, vessel, np.asarray(spacing))
+    for w in np.linspace(0.0, 1.0, 11):
+        vel = (1 - w) * vel_a + w * vel_b
+        dif = (1 - w) * dif_a + w * dif_b
+        assert lw <= stability.lax_wendroff_max_dt(tuple(vel), tuple(dif), spacing, material)
+        assert fv <= stability.finite_volume_max_dt(tuple(vel), spacing, vessel)

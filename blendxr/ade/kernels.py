@@ -28,6 +28,10 @@ __all__ = [
     "LW_INTERIOR",
     "LW_SURFACE",
     "LaxWendroffPlan",
+    "fv_max_dt_pair",
+    "lerp_into",
+    "lw_max_dt_pair_2d",
+    "lw_max_dt_pair_3d",
     "lw_apply_2d",
     "lw_apply_3d",
     "lw_classify_2d",
@@ -130,20 +134,41 @@ def _normal_offset(n, nmax):
 
 
 @njit(**_JIT)
-def lw_classify_2d(material, cls, rows):
-    """Classify cells and find each row's material range (2-D).
+def _erode_axis_2d(src, dst, axis):
+    """dst = 1 where src and both neighbours along ``axis`` are nonzero (0 on the edge)."""
+    nx, ny = src.shape
+    for i in prange(nx):
+        for j in range(ny):
+            if axis == 0:
+                edge = i == 0 or i == nx - 1
+                ok = not edge and src[i - 1, j] != 0 and src[i + 1, j] != 0
+            else:
+                edge = j == 0 or j == ny - 1
+                ok = not edge and src[i, j - 1] != 0 and src[i, j + 1] != 0
+            dst[i, j] = 1 if (ok and src[i, j] != 0) else 0
 
-    Parameters
-    ----------
-    material : ndarray of uint8, shape (nx, ny)
-        1 where the cell holds material.
-    cls : ndarray of uint8, shape (nx, ny)
-        Receives LW_INTERIOR (all 9 cells of the box are material), LW_SURFACE (material,
-        not interior) or LW_EMPTY.
-    rows : ndarray of int64, shape (nx, 2)
-        Receives, per row i, the half-open j-range holding every material cell ((0, 0)
-        for a row without material).
-    """
+
+@njit(**_JIT)
+def _erode_axis_3d(src, dst, axis):
+    """dst = 1 where src and both neighbours along ``axis`` are nonzero (0 on the edge)."""
+    nx, ny, nz = src.shape
+    for i in prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if src[i, j, k] == 0:
+                    dst[i, j, k] = 0
+                    continue
+                if axis == 0:
+                    ok = 0 < i < nx - 1 and src[i - 1, j, k] != 0 and src[i + 1, j, k] != 0
+                elif axis == 1:
+                    ok = 0 < j < ny - 1 and src[i, j - 1, k] != 0 and src[i, j + 1, k] != 0
+                else:
+                    ok = 0 < k < nz - 1 and src[i, j, k - 1] != 0 and src[i, j, k + 1] != 0
+                dst[i, j, k] = 1 if ok else 0
+
+
+@njit(**_JIT)
+def _classes_from_box_2d(material, box, cls, rows):
     nx, ny = material.shape
     for i in prange(nx):
         lo, hi = ny, 0
@@ -151,7 +176,7 @@ def lw_classify_2d(material, cls, rows):
             if material[i, j] == 0:
                 cls[i, j] = LW_EMPTY
                 continue
-            cls[i, j] = LW_INTERIOR if _interior_2d(material, i, j) else LW_SURFACE
+            cls[i, j] = LW_INTERIOR if box[i, j] != 0 else LW_SURFACE
             lo = min(lo, j)
             hi = j + 1
         rows[i, 0] = lo if hi > 0 else 0
@@ -159,12 +184,7 @@ def lw_classify_2d(material, cls, rows):
 
 
 @njit(**_JIT)
-def lw_classify_3d(material, cls, rows):
-    """Classify cells and find each (i, j) row's material range (3-D).
-
-    As :func:`lw_classify_2d`, with the 27-cell box and ``rows`` of shape (nx, ny, 2)
-    holding the half-open k-range per (i, j).
-    """
+def _classes_from_box_3d(material, box, cls, rows):
     nx, ny, nz = material.shape
     for i in prange(nx):
         for j in range(ny):
@@ -173,11 +193,51 @@ def lw_classify_3d(material, cls, rows):
                 if material[i, j, k] == 0:
                     cls[i, j, k] = LW_EMPTY
                     continue
-                cls[i, j, k] = LW_INTERIOR if _interior_3d(material, i, j, k) else LW_SURFACE
+                cls[i, j, k] = LW_INTERIOR if box[i, j, k] != 0 else LW_SURFACE
                 lo = min(lo, k)
                 hi = k + 1
             rows[i, j, 0] = lo if hi > 0 else 0
             rows[i, j, 1] = hi
+
+
+def lw_classify_2d(material, cls, rows, scratch=None):
+    """Classify cells and find each row's material range (2-D).
+
+    A cell is interior when all 9 cells of its box are material: the box test is the
+    erosion of the mask by a 3x3 square, done as one 1-D erosion per axis (3 reads per cell
+    and axis instead of 9).
+
+    Parameters
+    ----------
+    material : ndarray of uint8, shape (nx, ny)
+        1 where the cell holds material.
+    cls : ndarray of uint8, shape (nx, ny)
+        Receives LW_INTERIOR, LW_SURFACE (material, not interior) or LW_EMPTY.
+    rows : ndarray of int64, shape (nx, 2)
+        Receives, per row i, the half-open j-range holding every material cell ((0, 0)
+        for a row without material).
+    scratch : ndarray of uint8, shape (2, nx, ny), optional
+        Work space (allocated when not given).
+    """
+    if scratch is None:
+        scratch = np.empty((2, *material.shape), np.uint8)
+    _erode_axis_2d(material, scratch[0], 0)
+    _erode_axis_2d(scratch[0], scratch[1], 1)
+    _classes_from_box_2d(material, scratch[1], cls, rows)
+
+
+def lw_classify_3d(material, cls, rows, scratch=None):
+    """Classify cells and find each (i, j) row's material range (3-D).
+
+    As :func:`lw_classify_2d`, with the 27-cell box (three 1-D erosions) and ``rows`` of
+    shape (nx, ny, 2) holding the half-open k-range per (i, j).
+    """
+    if scratch is None:
+        scratch = np.empty((2, *material.shape), np.uint8)
+    _erode_axis_3d(material, scratch[0], 0)
+    _erode_axis_3d(scratch[0], scratch[1], 1)
+    _erode_axis_3d(scratch[1], scratch[0], 2)
+    _classes_from_box_3d(material, scratch[0], cls, rows)
 
 
 @njit(**_JIT)
@@ -383,13 +443,15 @@ class LaxWendroffPlan:
         ndim = len(shape)
         self.ndim = ndim
         self.cls = np.zeros(shape, np.uint8)
+        self.scratch = np.zeros((2, *shape), np.uint8)
         self.rows = np.zeros((*shape[:-1], 2), np.int64)
         n_coef = LW_COEFFICIENTS_3D if ndim == 3 else LW_COEFFICIENTS_2D
         self.coef = np.zeros((n_coef, *shape))
 
     def classify(self, material):
         """Mark interior, surface and empty cells from a material mask."""
-        (lw_classify_3d if self.ndim == 3 else lw_classify_2d)(material, self.cls, self.rows)
+        classify = lw_classify_3d if self.ndim == 3 else lw_classify_2d
+        classify(material, self.cls, self.rows, self.scratch)
 
     def coefficients(self, velocities, diffusivities, dt, spacing):
         """Fold the fields and dt into the per-cell coefficients (after :meth:`classify`)."""
@@ -1123,3 +1185,147 @@ def concentration(m, q, out, m_min):
         raise ValueError("m, q and out must have the same shape")
     _concentration_flat(m.reshape(-1), q.reshape(-1), out.reshape(-1), float(m_min))
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# Flow-field blending in time and the stable time step (run once per refresh / interval)
+# ---------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def lerp_into(out, a, b, w):
+    """out = a + w (b - a) on flat (1-D) arrays: linear interpolation between two phases."""
+    for i in prange(out.size):
+        out[i] = a[i] + w * (b[i] - a[i])
+
+
+@njit(**_JIT_SCALAR)
+def _limit_from_bounds(a1, a23, b2):
+    """Lax-Wendroff dt limit from sum |nu|/dt, sum |nu|^(2/3)/dt^(2/3) and 2 sum mu/dt."""
+    low = np.inf
+    if a23 > 0.0:
+        low = a23**-1.5
+    denom = b2 + np.sqrt(b2 * b2 + 4.0 * a1 * a1)
+    if denom > 0.0:
+        low = min(low, 2.0 / denom)
+    return low
+
+
+@njit(**_JIT)
+def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
+    """Largest Lax-Wendroff dt valid for every blend of two phases (3-D).
+
+    Per material cell and axis the effective speed |v_k - dD_kk/dx_k| / h_k and D_kk / h_k**2
+    are bounded by their larger value over the two phases (a blend is a convex combination),
+    and the limits of :func:`blendxr.ade.stability.lax_wendroff_max_dt` are applied to those
+    bounds: sum_k |nu_k|**(2/3) <= 1 and (sum_k |nu_k|)**2 + 2 sum_k mu_k <= 1.
+
+    Parameters
+    ----------
+    vel_a, dif_a, vel_b, dif_b : ndarray, shape (3, nx, ny, nz)
+        Velocity and diffusivity components of the two phases.
+    material : ndarray of uint8, shape (nx, ny, nz)
+        Cells that constrain dt (material in either phase).
+    """
+    nx, ny, nz = material.shape
+    best = np.full(nx, np.inf)
+    for i in prange(nx):
+        low = np.inf
+        for j in range(ny):
+            for k in range(nz):
+                if material[i, j, k] == 0:
+                    continue
+                gxa = gxb = gya = gyb = gza = gzb = 0.0
+                if 0 < i < nx - 1:
+                    gxa = (dif_a[0, i + 1, j, k] - dif_a[0, i - 1, j, k]) / (2.0 * dx)
+                    gxb = (dif_b[0, i + 1, j, k] - dif_b[0, i - 1, j, k]) / (2.0 * dx)
+                if 0 < j < ny - 1:
+                    gya = (dif_a[1, i, j + 1, k] - dif_a[1, i, j - 1, k]) / (2.0 * dy)
+                    gyb = (dif_b[1, i, j + 1, k] - dif_b[1, i, j - 1, k]) / (2.0 * dy)
+                if 0 < k < nz - 1:
+                    gza = (dif_a[2, i, j, k + 1] - dif_a[2, i, j, k - 1]) / (2.0 * dz)
+                    gzb = (dif_b[2, i, j, k + 1] - dif_b[2, i, j, k - 1]) / (2.0 * dz)
+                sx = max(abs(vel_a[0, i, j, k] - gxa), abs(vel_b[0, i, j, k] - gxb)) / dx
+                sy = max(abs(vel_a[1, i, j, k] - gya), abs(vel_b[1, i, j, k] - gyb)) / dy
+                sz = max(abs(vel_a[2, i, j, k] - gza), abs(vel_b[2, i, j, k] - gzb)) / dz
+                b2 = 2.0 * (
+                    max(dif_a[0, i, j, k], dif_b[0, i, j, k]) / (dx * dx)
+                    + max(dif_a[1, i, j, k], dif_b[1, i, j, k]) / (dy * dy)
+                    + max(dif_a[2, i, j, k], dif_b[2, i, j, k]) / (dz * dz)
+                )
+                a23 = sx ** (2.0 / 3.0) + sy ** (2.0 / 3.0) + sz ** (2.0 / 3.0)
+                low = min(low, _limit_from_bounds(sx + sy + sz, a23, b2))
+        best[i] = low
+    return best.min()
+
+
+@njit(**_JIT)
+def lw_max_dt_pair_2d(vel_a, dif_a, vel_b, dif_b, material, dx, dy):
+    """Largest Lax-Wendroff dt valid for every blend of two phases (2-D); see the 3-D one."""
+    nx, ny = material.shape
+    best = np.full(nx, np.inf)
+    for i in prange(nx):
+        low = np.inf
+        for j in range(ny):
+            if material[i, j] == 0:
+                continue
+            gxa = gxb = gya = gyb = 0.0
+            if 0 < i < nx - 1:
+                gxa = (dif_a[0, i + 1, j] - dif_a[0, i - 1, j]) / (2.0 * dx)
+                gxb = (dif_b[0, i + 1, j] - dif_b[0, i - 1, j]) / (2.0 * dx)
+            if 0 < j < ny - 1:
+                gya = (dif_a[1, i, j + 1] - dif_a[1, i, j - 1]) / (2.0 * dy)
+                gyb = (dif_b[1, i, j + 1] - dif_b[1, i, j - 1]) / (2.0 * dy)
+            sx = max(abs(vel_a[0, i, j] - gxa), abs(vel_b[0, i, j] - gxb)) / dx
+            sy = max(abs(vel_a[1, i, j] - gya), abs(vel_b[1, i, j] - gyb)) / dy
+            b2 = 2.0 * (
+                max(dif_a[0, i, j], dif_b[0, i, j]) / (dx * dx)
+                + max(dif_a[1, i, j], dif_b[1, i, j]) / (dy * dy)
+            )
+            a23 = sx ** (2.0 / 3.0) + sy ** (2.0 / 3.0)
+            low = min(low, _limit_from_bounds(sx + sy, a23, b2))
+        best[i] = low
+    return best.min()
+
+
+@njit(**_JIT)
+def fv_max_dt_pair(vel_a, vel_b, vessel, spacing):
+    """Largest finite-volume dt for every blend of two phases: per-face Courant <= 1/2.
+
+    The face velocity (mean of the two cells, zero at a wall) of a blend is bounded by the
+    larger of the two phases' face velocities. Works on 2-D or 3-D data flattened to
+    (ndim, n) with the grid ``shape`` given through ``spacing`` (h_k per axis) and
+    ``vessel`` of the grid's shape; ``vel_*`` have shape (ndim, *grid shape).
+    """
+    ndim = vel_a.shape[0]
+    shape = vessel.shape
+    n0 = shape[0]
+    best = np.full(n0, np.inf)
+    va = vel_a.reshape(ndim, -1)
+    vb = vel_b.reshape(ndim, -1)
+    ves = vessel.reshape(-1)
+    stride = np.ones(ndim, np.int64)
+    for axis in range(ndim - 2, -1, -1):
+        stride[axis] = stride[axis + 1] * shape[axis + 1]
+    per_slab = stride[0]
+    for i in prange(n0):
+        low = np.inf
+        for flat in range(i * per_slab, (i + 1) * per_slab):
+            if ves[flat] == 0:
+                continue
+            rem = flat
+            for axis in range(ndim):
+                idx = rem // stride[axis]
+                rem -= idx * stride[axis]
+                if idx + 1 >= shape[axis]:
+                    continue
+                nb = flat + stride[axis]
+                if ves[nb] == 0:
+                    continue
+                fa = abs(0.5 * (va[axis, flat] + va[axis, nb]))
+                fb = abs(0.5 * (vb[axis, flat] + vb[axis, nb]))
+                f = max(fa, fb)
+                if f > 0.0:
+                    low = min(low, 0.5 * spacing[axis] / f)
+        best[i] = low
+    return best.min()

@@ -27,17 +27,28 @@ _VELOCITY_NAMES = ("vx", "vy", "vz")
 
 @dataclass
 class PreparedPhase:
-    """One stored phase on the ADE grid, ready for the kernels."""
+    """One stored phase on the ADE grid, ready for the kernels.
+
+    Velocity and diffusivity components are stacked (component first) so that blending two
+    phases and bounding their stable dt are single kernel calls.
+    """
 
     index: int
-    velocities: tuple  # ndim arrays, m/s
-    diffusivities: tuple | None  # ndim arrays, m2/s, or None when no diffusion
+    vel: np.ndarray  # (ndim, *shape), m/s
+    dif: np.ndarray | None  # (ndim, *shape), m2/s, or None when there is no diffusion
     fill: np.ndarray  # material volume fraction
 
     @property
+    def velocities(self) -> tuple:
+        return tuple(self.vel)
+
+    @property
+    def diffusivities(self) -> tuple | None:
+        return None if self.dif is None else tuple(self.dif)
+
+    @property
     def nbytes(self) -> int:
-        arrays = list(self.velocities) + list(self.diffusivities or ()) + [self.fill]
-        return sum(a.nbytes for a in arrays)
+        return self.vel.nbytes + self.fill.nbytes + (0 if self.dif is None else self.dif.nbytes)
 
 
 class CyclicPhaseReader:
@@ -125,11 +136,10 @@ class CyclicPhaseReader:
             for v in velocities
         )
         fill_ade = np.where(self.vessel, np.clip(interpolate(fill, self._maps), 0.0, 1.0), 0.0)
+        dif = None
         if diffusivities is not None:
-            diffusivities = tuple(
-                np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities
-            )
-        return PreparedPhase(k, velocities_ade, diffusivities, fill_ade)
+            dif = np.stack([np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities])
+        return PreparedPhase(k, np.stack(velocities_ade), dif, fill_ade)
 
     def get(self, k: int) -> PreparedPhase:
         """The prepared phase ``k`` (cyclic), reading it if needed; prefetches ``k + 1``."""

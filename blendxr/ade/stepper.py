@@ -73,7 +73,7 @@ class MixSettings:
     wall_time: float | None = None
     max_steps: int | None = None
     check_every: int = 25
-    refresh_per_phase: int | None = 8
+    refresh_per_phase: int | None = 2
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -193,13 +193,15 @@ class _State:
 
 
 class _Fields:
-    """The flow fields at the current step time, on the ADE grid (reused buffers)."""
+    """The flow fields at the current refresh time, on the ADE grid (reused buffers)."""
 
     def __init__(self, ndim: int, shape: tuple, with_diffusion: bool, with_fill: bool):
-        self.velocities = tuple(np.zeros(shape) for _ in range(ndim))
-        self.diffusivities = tuple(np.zeros(shape) for _ in range(ndim)) if with_diffusion else None
+        self.vel = np.zeros((ndim, *shape))
+        self.dif = np.zeros((ndim, *shape)) if with_diffusion else None
         self.fill = np.zeros(shape) if with_fill else None
         self.material = np.zeros(shape, np.uint8) if with_fill else None
+        self.velocities = tuple(self.vel)
+        self.diffusivities = None if self.dif is None else tuple(self.dif)
         self._key = None
 
     def blend(self, a, b, w: float) -> bool:
@@ -208,22 +210,15 @@ class _Fields:
         if key == self._key:
             return False
         self._key = key
-
-        def mix_into(out, x, y):
-            if w == 0.0 or x is y:
-                np.copyto(out, x)
-            else:
-                np.subtract(y, x, out=out)
-                out *= w
-                out += x
-
-        for out, x, y in zip(self.velocities, a.velocities, b.velocities, strict=True):
-            mix_into(out, x, y)
-        if self.diffusivities is not None:
-            for out, x, y in zip(self.diffusivities, a.diffusivities, b.diffusivities, strict=True):
-                mix_into(out, x, y)
+        w = 0.0 if a is b else w
+        pairs = [(self.vel, a.vel, b.vel)]
+        if self.dif is not None:
+            pairs.append((self.dif, a.dif, b.dif))
         if self.fill is not None:
-            mix_into(self.fill, a.fill, b.fill)
+            pairs.append((self.fill, a.fill, b.fill))
+        for out, x, y in pairs:
+            kernels.lerp_into(out.reshape(-1), x.reshape(-1), y.reshape(-1), w)
+        if self.fill is not None:
             np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
         return True
 
@@ -362,6 +357,7 @@ class _Run:
         )
         self._lw_dt = None
         self._active = None
+        self._limits: dict = {}
         self.t = 0.0
         self.steps = 0
         self.cell_updates = 0
@@ -456,46 +452,22 @@ class _Run:
         return (t / self.period) * self.reader.n_phases
 
     def _limit(self, a, b) -> float:
-        """The largest stable dt for any blend of phases a and b (scheme's own limits)."""
-        s = self.settings
-        limits = []
-        for phase in {id(a): a, id(b): b}.values():
-            if s.scheme == "lax-wendroff":
-                diffs = phase.diffusivities or tuple(
-                    np.zeros(self.grid.shape) for _ in range(self.ndim)
-                )
-                material = phase.fill >= MATERIAL_THRESHOLD
-                limits.append(
-                    stability.lax_wendroff_max_dt(
-                        phase.velocities, diffs, self.grid.spacing, material
-                    )
-                )
-            else:
-                limits.append(
-                    stability.finite_volume_max_dt(phase.velocities, self.grid.spacing, self.vessel)
-                )
-        if a is not b:
-            # component-wise maxima bound every blend of the two phases
-            vmax = tuple(
-                np.maximum(np.abs(x), np.abs(y))
-                for x, y in zip(a.velocities, b.velocities, strict=True)
+        """The largest stable dt for any blend of phases a and b (the scheme's own limits)."""
+        h = self.grid.spacing
+        if self.settings.scheme == "lax-wendroff":
+            material = ((a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)).view(
+                np.uint8
             )
-            if s.scheme == "lax-wendroff":
-                dmax = (
-                    tuple(
-                        np.maximum(x, y)
-                        for x, y in zip(a.diffusivities, b.diffusivities, strict=True)
-                    )
-                    if a.diffusivities is not None
-                    else tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
-                )
-                material = (a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)
-                limits.append(
-                    stability.lax_wendroff_max_dt(vmax, dmax, self.grid.spacing, material)
-                )
-            else:
-                limits.append(stability.finite_volume_max_dt(vmax, self.grid.spacing, self.vessel))
-        return min(limits)
+            dif_a = a.dif if a.dif is not None else self._zero_stack()
+            dif_b = b.dif if b.dif is not None else self._zero_stack()
+            pair = kernels.lw_max_dt_pair_3d if self.ndim == 3 else kernels.lw_max_dt_pair_2d
+            return float(pair(a.vel, dif_a, b.vel, dif_b, material, *h))
+        return float(kernels.fv_max_dt_pair(a.vel, b.vel, self.vessel, np.asarray(h)))
+
+    def _zero_stack(self):
+        if getattr(self, "_zeros_stack", None) is None:
+            self._zeros_stack = np.zeros((self.ndim, *self.grid.shape))
+        return self._zeros_stack
 
     def advance_to(self, t_end: float) -> None:
         """Step from self.t to t_end (no stored-phase boundary inside)."""
@@ -506,7 +478,11 @@ class _Run:
         mid = self._phase_position(self.t + 0.5 * span)
         k = math.floor(mid)
         a, b = self.reader.pair(k)
-        limit = self._limit(a, b)
+        # The stored revolution repeats, so an interval's limit is computed once per run.
+        key = (a.index, b.index)
+        limit = self._limits.get(key)
+        if limit is None:
+            limit = self._limits[key] = self._limit(a, b)
         s = self.settings
         if s.dt is not None:
             if s.dt > limit:
@@ -523,9 +499,7 @@ class _Run:
         self.dt_used[1] = max(self.dt_used[1], dt)
         n_sub = 0
         if s.scheme == "finite-volume" and self.with_diffusion:
-            dmax = tuple(
-                np.maximum(x, y) for x, y in zip(a.diffusivities, b.diffusivities, strict=True)
-            )
+            dmax = tuple(np.maximum(a.dif, b.dif))
             n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
             self.max_substeps = max(self.max_substeps, n_sub)
         # Flow fields (and the scheme's per-cell coefficients) are refreshed in blocks of
@@ -593,9 +567,7 @@ class _Run:
         self.cell_updates += self._active_cells()
 
     def _zeros(self):
-        if not hasattr(self, "_zero_fields"):
-            self._zero_fields = tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
-        return self._zero_fields
+        return tuple(self._zero_stack())
 
     def _active_cells(self) -> int:
         if self.settings.scheme == "finite-volume":
@@ -719,7 +691,7 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
         above the stability limit), ``memory_budget_mb``, ``progress``, ``checkpoint``
         (path), ``checkpoint_every`` (revolutions), ``resume``, ``wall_time`` (s),
         ``max_steps``, ``refresh_per_phase`` (flow-field updates per stored-phase
-        interval, default 8; None updates them every step).
+        interval, default 2; None updates them every step).
 
     Returns
     -------
