@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from blendxr.flow.analytic import solid_body_rotation, swirl, uniform
+from blendxr.flow.analytic import _drum_section, rolling_drum, solid_body_rotation, swirl, uniform
 from blendxr.schema import validate
 
 
@@ -57,6 +57,8 @@ FLOWS = [
     (solid_body_rotation, {"ndim": 3, "cells": 6, "length": 0.15}),
     (solid_body_rotation, {"ndim": 2, "cells": 8, "fill_fraction": 0.3, "n_phases": 4}),
     (solid_body_rotation, {"ndim": 3, "cells": 6, "fill_fraction": 0.6, "n_phases": 3}),
+    (rolling_drum, {"ndim": 2, "cells": 12}),
+    (rolling_drum, {"ndim": 3, "cells": 8, "width": 0.03, "n_phases": 2}),
 ]
 
 
@@ -281,6 +283,20 @@ def test_moving_bed_quarter_turn_is_exact():
         (solid_body_rotation, {"radius": -0.1}, "radius"),
         (solid_body_rotation, {"cells": 3}, "cells"),
         (solid_body_rotation, {"ndim": 2, "length": 0.2}, "length"),
+        (rolling_drum, {"ndim": 1}, "ndim"),
+        (rolling_drum, {"fill_depth": 0.0}, "fill_depth"),
+        (rolling_drum, {"fill_depth": 1.0}, "fill_depth"),
+        (rolling_drum, {"fill_depth": float("nan")}, "fill_depth"),
+        (rolling_drum, {"angle_deg": -1.0}, "angle_deg"),
+        (rolling_drum, {"angle_deg": 90.0}, "angle_deg"),
+        (rolling_drum, {"layer_fraction": 0.0}, "layer_fraction"),
+        (rolling_drum, {"layer_fraction": 0.9}, "layer_fraction"),
+        (rolling_drum, {"radius": 0.0}, "radius"),
+        (rolling_drum, {"width": -0.05}, "width"),
+        (rolling_drum, {"rpm": 0.0}, "rpm"),
+        (rolling_drum, {"cells": 3}, "cells"),
+        (rolling_drum, {"margin": 0}, "margin"),
+        (rolling_drum, {"frame": "vessel"}, "frame"),
     ],
 )
 def test_bad_arguments_are_refused(function, kwargs, match):
@@ -291,3 +307,288 @@ def test_bad_arguments_are_refused(function, kwargs, match):
 def test_partial_fill_defaults_to_several_phases():
     ds = solid_body_rotation(ndim=2, cells=6, fill_fraction=0.5)
     assert ds.sizes["rev_phase"] > 1
+
+
+# ---------------------------------------------------------------------------------------
+# Rolling drum
+# ---------------------------------------------------------------------------------------
+
+DRUM = {"radius": 0.075, "rpm": 3.26, "fill_depth": 0.32, "angle_deg": 27.1}
+
+
+def drum_section(layer_fraction=0.15, **changes):
+    kwargs = {**DRUM, **changes}
+    return _drum_section(
+        kwargs["radius"], kwargs["rpm"], kwargs["fill_depth"], kwargs["angle_deg"], layer_fraction
+    )
+
+
+def grid_chord_coordinates(ds, section):
+    x, y = np.meshgrid(ds.x.values, ds.y.values, indexing="ij")
+    return (x, y, *section.chord_coordinates(x, y))
+
+
+def layer_flux(section, s, velocity, points=48):
+    """Flux down the layer across the normal at s: -∫ u·t dn over n in [-δ(s), 0]."""
+    nodes, weights = np.polynomial.legendre.leggauss(points)
+    delta = float(section.layer_thickness(s))
+    n = -0.5 * delta * (1.0 - nodes)
+    (tx, ty), (mx, my) = section.tangent, section.normal
+    x = s * tx + (n + section.offset) * mx
+    y = s * ty + (n + section.offset) * my
+    u, v = velocity(x, y)
+    return -0.5 * delta * float(np.sum(weights * (u * tx + v * ty)))
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_rolling_drum_is_steady_in_the_lab_frame(ndim):
+    ds = rolling_drum(ndim=ndim, cells=16, n_phases=3)
+    validate(ds)
+    assert ds.attrs["frame"] == "lab" and ds.attrs["rpm"] == 3.26
+    for name in ("vx", "vy", "fill"):
+        values = ds[name].values
+        assert np.all(values == values[:1])
+    if ndim == 2:
+        assert "z" not in ds.dims and "z" not in ds.coords and "vz" not in ds
+    else:
+        assert np.all(ds.vz.values == 0)
+    assert rolling_drum(ndim=ndim, cells=16).sizes["rev_phase"] == 1
+
+
+def test_rolling_drum_vessel_is_the_circle_with_a_margin():
+    ds = rolling_drum(cells=20, margin=3)
+    x, y = np.meshgrid(ds.x.values, ds.y.values, indexing="ij")
+    np.testing.assert_array_equal(ds.vessel.values, np.hypot(x, y) < 0.075)
+    assert spacing(ds, "x") == pytest.approx(0.15 / 20)
+    assert ds.sizes["x"] == ds.sizes["y"] == 26
+    assert not ds.fill.values[0].take([0, 1, 2, -3, -2, -1], axis=0).any()
+    assert not ds.fill.values[0].take([0, 1, 2, -3, -2, -1], axis=1).any()
+
+
+@pytest.mark.parametrize("width", [0.05, 0.047])
+def test_rolling_drum_3d_is_the_section_extruded_between_end_walls(width):
+    flat, ds = rolling_drum(ndim=2, cells=24), rolling_drum(ndim=3, cells=24, width=width)
+    h = spacing(ds, "x")
+    z = ds.z.values
+    inside, whole = np.abs(z) < width / 2, np.abs(z) + h / 2 <= width / 2
+    vessel = ds.vessel.values
+    section = np.repeat(flat.vessel.values[..., None], inside.sum(), 2)
+    np.testing.assert_array_equal(vessel[:, :, inside], section)
+    assert not vessel[:, :, ~inside].any()
+    for name in ("vx", "vy", "fill"):
+        values = ds[name].values[0][:, :, whole]
+        np.testing.assert_array_equal(
+            values, np.repeat(flat[name].values[0][..., None], whole.sum(), 2)
+        )
+    assert not ds.fill.values[0][:, :, [0, -1]].any()
+    volume = ds.fill.values.sum() * h**3
+    assert volume == pytest.approx(flat.fill.values.sum() * h**2 * width, rel=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_rolling_drum_bed_turns_rigidly_below_the_layer(ndim):
+    ds = rolling_drum(ndim=ndim, cells=32)
+    section = drum_section()
+    h = spacing(ds, "x")
+    x, y, s, n = grid_chord_coordinates(ds, section)
+    fill = ds.fill.values[0]
+    vx, vy = ds.vx.values[0], ds.vy.values[0]
+    if ndim == 3:
+        middle = fill.shape[2] // 2
+        fill, vx, vy = fill[:, :, middle], vx[:, :, middle], vy[:, :, middle]
+    deep = (fill > 0) & (n < -(section.layer_thickness(s) + 2 * h))
+    assert deep.sum() > 100
+    omega = 2 * math.pi * 3.26 / 60
+    scale = omega * 0.075
+    np.testing.assert_allclose(vx[deep], -omega * y[deep], rtol=0, atol=1e-13 * scale)
+    np.testing.assert_allclose(vy[deep], omega * x[deep], rtol=0, atol=1e-13 * scale)
+    assert np.all(vx[fill == 0] == 0) and np.all(vy[fill == 0] == 0)
+
+
+def test_rolling_drum_velocity_is_the_curl_of_its_stream_function():
+    section = drum_section()
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(-0.075, 0.075, (2, 20000))
+    s, n = section.chord_coordinates(x, y)
+    keep = (np.hypot(x, y) < 0.075) & (n < 0)
+    x, y = x[keep], y[keep]
+    step = 1e-7
+    psi = section.stream_function
+    u_fd = (psi(x, y + step) - psi(x, y - step)) / (2 * step)
+    v_fd = -(psi(x + step, y) - psi(x - step, y)) / (2 * step)
+    u, v = section.velocity(x, y)
+    peak = np.max(np.hypot(u, v))
+    assert np.max(np.hypot(u - u_fd, v - v_fd)) < 1e-6 * peak
+
+
+def test_rolling_drum_wall_and_surface_are_one_streamline():
+    section = drum_section()
+    # the wall under the bed
+    theta = np.linspace(0, 2 * np.pi, 2001)
+    x, y = 0.075 * np.cos(theta), 0.075 * np.sin(theta)
+    _, n = section.chord_coordinates(x, y)
+    wall = n < 0
+    np.testing.assert_allclose(
+        section.stream_function(x[wall], y[wall]), section.surface_stream_function, rtol=1e-12
+    )
+    u, v = section.velocity(x[wall], y[wall])
+    radial = (u * x[wall] + v * y[wall]) / 0.075
+    assert np.max(np.abs(radial)) < 1e-12 * section.omega * 0.075
+    # the free surface: no velocity across it
+    s = np.linspace(-1, 1, 401)[1:-1] * section.half_chord  # the ends are corners
+    (tx, ty), (mx, my) = section.tangent, section.normal
+    x, y = s * tx + section.offset * mx, s * ty + section.offset * my
+    np.testing.assert_allclose(
+        section.stream_function(x, y), section.surface_stream_function, rtol=1e-12
+    )
+    u, v = section.velocity(x, y)
+    assert np.max(np.abs(u * mx + v * my)) < 1e-12 * section.omega * 0.075
+
+
+@pytest.mark.parametrize("ndim, cells", [(2, 16), (2, 96), (2, 256), (3, 32)])
+def test_rolling_drum_is_discretely_solenoidal(ndim, cells):
+    # Central differences of ψ at the centres: the central-difference divergence cancels
+    # exactly, across the layer's bottom and the surface too.
+    ds = rolling_drum(ndim=ndim, cells=cells)
+    div = divergence(ds)[material_interior(ds)]
+    assert div.size > 0
+    omega = 2 * math.pi * 3.26 / 60
+    assert np.max(np.abs(div)) < 1e-12 * omega * cells
+
+
+def test_rolling_drum_grid_velocity_converges_to_the_exact_field():
+    section = drum_section()
+    errors = []
+    for cells in (128, 256, 512):
+        ds = rolling_drum(cells=cells)
+        h = spacing(ds, "x")
+        x, y, s, n = grid_chord_coordinates(ds, section)
+        vx, vy = ds.vx.values[0], ds.vy.values[0]
+        delta = section.layer_thickness(s)
+        u, v = section.velocity(x, y)
+        # rigid bed: ψ is quadratic there, so its central differences are exact
+        bed = (ds.fill.values[0] > 0) & (n < -(delta + 2 * h))
+        np.testing.assert_allclose(vx[bed], u[bed], rtol=0, atol=1e-13 * section.omega)
+        np.testing.assert_allclose(vy[bed], v[bed], rtol=0, atol=1e-13 * section.omega)
+        # the layer, away from its bottom and the surface, where ψ is smooth
+        layer = (n < -2 * h) & (n > -(delta - 2 * h)) & (np.abs(s) < 0.6 * section.half_chord)
+        assert layer.sum() > 0
+        errors.append(np.max(np.hypot(vx - u, vy - v)[layer]))
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all(orders > 1.6), (errors, orders)
+
+
+@pytest.mark.parametrize("fraction", [-0.8, -0.5, 0.0, 0.5, 0.8])
+def test_rolling_drum_layer_carries_the_thin_layer_flux(fraction):
+    # DESIGN §7: q(s) = ω (L² - s²) / 2 for a thin layer. The model's layer is fed by the
+    # bed below its bottom, so its flux is ψ_bed - ψ_s there, which tends to q(s).
+    thin = drum_section(layer_fraction=0.05)
+    s = fraction * thin.half_chord
+    flux = layer_flux(thin, s, thin.velocity)
+    q = float(thin.thin_layer_flux(s))
+    assert flux > 0  # downhill
+    assert flux == pytest.approx(q, rel=0.10)
+    # the quadrature agrees with the stream function across the layer
+    (tx, ty), (mx, my) = thin.tangent, thin.normal
+    depth = thin.offset - float(thin.layer_thickness(s))
+    bottom = thin.stream_function(s * tx + depth * mx, s * ty + depth * my)
+    assert flux == pytest.approx(float(bottom) - thin.surface_stream_function, rel=1e-10)
+    # and the flux approaches q(s) as the layer thins
+    errors = [
+        abs(layer_flux(sec, s, sec.velocity) / q - 1)
+        for sec in (drum_section(layer_fraction=f) for f in (0.2, 0.1, 0.05, 0.025))
+    ]
+    assert all(b < a for a, b in zip(errors, errors[1:], strict=False)), errors
+    assert errors[-1] < 0.05
+
+
+def test_rolling_drum_gridded_layer_flux_converges_to_the_model():
+    from scipy.interpolate import RegularGridInterpolator
+
+    # The 2h differences smooth the velocity over a cell at the surface, where the
+    # layer is fastest: the gridded layer's flux falls short by about h / (2 δ).
+    section = drum_section()
+    errors = []
+    for cells in (64, 128, 256):
+        ds = rolling_drum(cells=cells)
+        axes = (ds.x.values, ds.y.values)
+        interpolants = [RegularGridInterpolator(axes, ds[v].values[0]) for v in ("vx", "vy")]
+
+        def velocity(x, y, interpolants=interpolants):
+            points = np.column_stack([x, y])
+            return tuple(f(points) for f in interpolants)
+
+        chord = np.array([-0.5, 0.0, 0.5]) * section.half_chord
+        exact = np.array([layer_flux(section, s, section.velocity) for s in chord])
+        gridded = np.array([layer_flux(section, s, velocity, 200) for s in chord])
+        errors.append(np.abs(gridded / exact - 1))
+    errors = np.array(errors)
+    orders = np.log2(errors[:-1] / errors[1:])
+    assert np.all(orders > 0.8), (errors, orders)
+    assert np.all(errors[-1] < 0.05), errors
+
+
+@pytest.mark.parametrize(
+    "fill_depth, angle_deg, cells",
+    [(0.32, 27.1, 64), (0.32, 0.0, 40), (0.5, 35.0, 33), (0.15, 10.0, 50), (0.7, 27.1, 48)],
+)
+def test_rolling_drum_bed_is_the_circular_segment(fill_depth, angle_deg, cells):
+    ds = rolling_drum(cells=cells, fill_depth=fill_depth, angle_deg=angle_deg)
+    h = spacing(ds, "x")
+    radius = 0.075
+    depth = 2 * radius * fill_depth  # along the surface normal through the axis
+    c = radius - depth
+    segment = radius**2 * math.acos(c / radius) - c * math.sqrt(radius**2 - c**2)
+    section = drum_section(fill_depth=fill_depth, angle_deg=angle_deg)
+    assert section.segment_area() == pytest.approx(segment, rel=1e-12)
+    area = ds.fill.values.sum() * h**2
+    assert abs(area - segment) < h**2
+    assert abs(area - segment) < 0.01 * h**2  # stronger than asked: the fill is near exact
+    assert 0 <= ds.fill.values.min() and ds.fill.values.max() <= 1
+
+
+def test_rolling_drum_half_full():
+    ds = rolling_drum(cells=40, fill_depth=0.5, angle_deg=0.0)
+    h = spacing(ds, "x")
+    assert ds.fill.values.sum() * h**2 == pytest.approx(math.pi * 0.075**2 / 2, abs=0.01 * h**2)
+    # the horizontal surface through the axis splits every cell the wall misses in two
+    f = ds.fill.values[0]
+    x, y = np.meshgrid(ds.x.values, ds.y.values, indexing="ij")
+    whole = np.hypot(np.abs(x) + h / 2, np.abs(y) + h / 2) < 0.075
+    np.testing.assert_allclose((f + f[:, ::-1])[whole], 1.0, rtol=0, atol=1e-12)
+    assert np.all(f + f[:, ::-1] <= 1 + 1e-12)
+
+
+def test_rolling_drum_surface_flows_downhill():
+    ds = rolling_drum(cells=64)
+    section = drum_section()
+    x, y, s, n = grid_chord_coordinates(ds, section)
+    vx, vy, fill = ds.vx.values[0], ds.vy.values[0], ds.fill.values[0]
+    (tx, ty), (mx, my) = section.tangent, section.normal
+    # the cell holding the chord's midpoint
+    i = np.argmin(np.abs(ds.x.values - section.offset * mx))
+    j = np.argmin(np.abs(ds.y.values - section.offset * my))
+    assert fill[i, j] > 0 and vx[i, j] < 0 and vy[i, j] < 0
+    downhill = -(vx[i, j] * tx + vy[i, j] * ty)
+    assert downhill > 0.95 * math.hypot(vx[i, j], vy[i, j])
+    # the fastest material is at the surface: ω L² / δ0 at the midpoint, which the grid
+    # approaches from below (its velocity is a mean over 2h)
+    peak = section.omega * section.half_chord**2 / section.layer
+    assert 0.5 * peak < downhill < peak
+    assert np.max(np.hypot(vx, vy)) < peak
+    exact = section.velocity(section.offset * mx, section.offset * my)
+    assert exact[0] == pytest.approx(-peak * tx) and exact[1] == pytest.approx(-peak * ty)
+    # the cells at the surface move downhill, but at the chord's ends, where the wall is
+    top = (fill > 0) & (n >= -spacing(ds, "x")) & (np.abs(s) < 0.9 * section.half_chord)
+    assert top.sum() > 20
+    assert np.all(vx[top] * tx + vy[top] * ty < 0)
+    # and the wall side of the bed goes up on +x
+    right = (fill > 0) & (x > 0.04) & (y < -0.03)
+    assert right.any() and np.all(vy[right] > 0)
+
+
+def test_rolling_drum_is_exposed_as_a_public_flow():
+    import blendxr as bx
+
+    assert bx.flows.rolling_drum is rolling_drum
+    assert json.loads(rolling_drum(cells=8).attrs["analytic"])["flow"] == "rolling_drum"

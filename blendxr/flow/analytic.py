@@ -6,7 +6,9 @@ material region (``fill``) and one revolution of ``rev_phase`` bins. Their exact
 (constant, rigid rotation, divergence-free, time-reversing) make them reference cases for
 the advection-diffusion stepper: a blob carried by `swirl` must come back after each
 revolution, a solid-body rotation must keep its shape, a moving bed in a closed vessel
-must keep its species mass.
+must keep its species mass. `rolling_drum` is a kinematic model of a real case, the
+paper's calibration drum: a rigid bed under a flowing layer whose flux tends to the
+q(s) = ω (L² - s²)/2 of a thin layer.
 
 The attribute ``analytic`` holds the flow's name and parameters as JSON text, so a dataset
 can be rebuilt from its own file.
@@ -17,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
@@ -24,7 +27,7 @@ from scipy.optimize import brentq
 
 from ..schema import flow_dataset
 
-__all__ = ["solid_body_rotation", "swirl", "uniform"]
+__all__ = ["rolling_drum", "solid_body_rotation", "swirl", "uniform"]
 
 _FRAMES = ("vessel", "lab")
 
@@ -488,6 +491,447 @@ def swirl(
         np.ones(counts),
         np.ones(counts, dtype=np.int8),
         frame=_frame(frame),
+        rpm=rpm,
+        gravity=gravity,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Rolling drum
+# --------------------------------------------------------------------------------------
+
+# Sub-cells per axis that resolve the curved wall in the cells it cuts. The wall is
+# taken as straight within a sub-cell, so the bed's area comes out within about a
+# thousandth of a cell.
+_WALL_SUBCELLS = 16
+
+
+def _number(name: str, value) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return number
+
+
+@dataclass(frozen=True)
+class _DrumSection:
+    """Cross-section of a drum rolling at steady state: geometry and stream function.
+
+    Chord coordinates of a point p: ``s = t·p`` along the free surface, with
+    ``t = (cos β, sin β)`` pointing uphill, and ``n = m·p - offset`` across it, with
+    ``m = (-sin β, cos β)`` pointing out of the bed. The surface is ``n = 0``, the bed
+    ``n < 0``, and ``s = 0`` at the chord's midpoint (the foot of the perpendicular
+    from the axis).
+    """
+
+    radius: float
+    omega: float
+    angle: float  # dynamic angle of repose β, radians
+    offset: float  # signed distance of the chord from the axis along m
+    half_chord: float
+    layer: float  # flowing-layer thickness δ0 at the chord's midpoint
+
+    @property
+    def tangent(self) -> tuple[float, float]:
+        return (math.cos(self.angle), math.sin(self.angle))
+
+    @property
+    def normal(self) -> tuple[float, float]:
+        return (-math.sin(self.angle), math.cos(self.angle))
+
+    @property
+    def surface_stream_function(self) -> float:
+        """ψ on the wall and on the free surface: the bed's bounding streamline."""
+        return -0.5 * self.omega * self.radius**2
+
+    def chord_coordinates(self, x, y):
+        """``(s, n)`` of the points ``(x, y)``."""
+        (tx, ty), (mx, my) = self.tangent, self.normal
+        return tx * x + ty * y, mx * x + my * y - self.offset
+
+    def layer_thickness(self, s):
+        """δ(s) = δ0 sqrt(1 - s²/L²); zero beyond the chord's ends."""
+        ratio = np.clip(1.0 - np.square(np.asarray(s, float) / self.half_chord), 0.0, None)
+        return self.layer * np.sqrt(ratio)
+
+    def thin_layer_flux(self, s):
+        """q(s) = ω (L² - s²) / 2, the flux of a vanishingly thin layer (DESIGN §7)."""
+        s = np.asarray(s, float)
+        return 0.5 * self.omega * np.clip(self.half_chord**2 - s * s, 0.0, None)
+
+    def stream_function(self, x, y):
+        """ψ at points (x, y); ψ = ψ_s above the free surface.
+
+        Rigid rotation ``ψ_bed = -ω r²/2`` below the flowing layer and
+        ``ψ_s + (ψ_bed - ψ_s) f(η)`` in it, ``f(η) = 2η - η²``, ``η = -n/δ(s)``.
+        """
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        s, n = self.chord_coordinates(x, y)
+        delta = self.layer_thickness(s)
+        # Where there is no layer (beyond the chord's ends) a point is bed below the
+        # surface line and free space above it.
+        eta = np.where(n < 0, np.inf, 0.0)
+        np.divide(-n, delta, out=eta, where=delta > 0)
+        eta = np.clip(eta, 0.0, 1.0)
+        above_bed = 0.5 * self.omega * (self.radius**2 - x * x - y * y)  # ψ_bed - ψ_s
+        return self.surface_stream_function + above_bed * eta * (2.0 - eta)
+
+    def velocity(self, x, y):
+        """Exact velocity ``(∂ψ/∂y, -∂ψ/∂x)`` at points of the bed (n <= 0).
+
+        The reference the gridded field of `rolling_drum` is checked against. Points above
+        the free surface are taken onto it along its normal and get the surface velocity.
+        """
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        omega, big_l, d = self.omega, self.half_chord, self.offset
+        s, n = self.chord_coordinates(x, y)
+        on_surface = n >= 0
+
+        # On the surface f = 0 and f' = 2, so u_s = -2 (ψ_bed - ψ_s) / δ; written with
+        # δ's definition it stays finite up to the chord's ends, where it vanishes.
+        s_top = np.clip(s, -big_l, big_l)
+        along_top = -omega * big_l * np.sqrt(np.clip(big_l**2 - s_top**2, 0.0, None))
+        along_top /= self.layer
+
+        n = np.minimum(n, 0.0)
+        delta = self.layer_thickness(s)
+        in_layer = (delta > 0) & (-n < delta)
+        safe_delta = np.where(in_layer, delta, 1.0)
+        # η = 1 below the layer makes f = 1, f' = 0 there: the rigid rotation of the bed.
+        eta = np.where(in_layer, -n / safe_delta, 1.0)
+        f, df = eta * (2.0 - eta), 2.0 - 2.0 * eta
+        q = 0.5 * omega * (big_l**2 - s * s - n * n - 2.0 * n * d)  # ψ_bed - ψ_s
+        dq_ds, dq_dn = -omega * s, -omega * (n + d)
+        deta_dn = -1.0 / safe_delta
+        # ∂η/∂s = η s / (L² - s²), since δ'/δ = -s / (L² - s²)
+        deta_ds = np.where(in_layer, eta * s / np.where(in_layer, big_l**2 - s * s, 1.0), 0.0)
+        along = dq_dn * f + q * df * deta_dn  # u·t = ∂ψ/∂n
+        across = -(dq_ds * f + q * df * deta_ds)  # u·m = -∂ψ/∂s
+
+        along = np.where(on_surface, along_top, along)
+        across = np.where(on_surface, 0.0, across)
+        (tx, ty), (mx, my) = self.tangent, self.normal
+        return along * tx + across * mx, along * ty + across * my
+
+    def grid_velocity(self, x: np.ndarray, y: np.ndarray):
+        """Velocity on the grid of cell centres ``x``, ``y`` (uniform spacing h), indexed (x, y).
+
+        Central differences of ψ sampled at the cell centres:
+        ``u[i, j] = (ψ[i, j+1] - ψ[i, j-1]) / 2h``, ``v[i, j] = -(ψ[i+1, j] - ψ[i-1, j]) / 2h``.
+        Their central-difference divergence is ``(ψ[i+1, j+1] - ψ[i+1, j-1] - ψ[i-1, j+1]
+        + ψ[i-1, j-1]) / 4h²`` minus the same sum: zero to round-off, whatever ψ's
+        smoothness. That is the divergence a finite-volume scheme sees when it takes a face
+        velocity as the mean of the two cells' velocities, so a bed carried through this
+        field neither gathers nor thins inside. ψ is continued past the bed as
+        `stream_function` does (ψ_s above the surface, rigid rotation beyond the wall).
+        """
+        h = float(x[1] - x[0])
+        # one more ring of centres, so that every cell has its four neighbours
+        xe = np.concatenate([[x[0] - h], x, [x[-1] + h]])
+        ye = np.concatenate([[y[0] - h], y, [y[-1] + h]])
+        psi = self.stream_function(*np.meshgrid(xe, ye, indexing="ij"))
+        u = (psi[1:-1, 2:] - psi[1:-1, :-2]) / (2.0 * h)
+        v = -(psi[2:, 1:-1] - psi[:-2, 1:-1]) / (2.0 * h)
+        return u, v
+
+    def segment_area(self) -> float:
+        """Exact area of the bed: the circular segment below the chord."""
+        radius, d = self.radius, self.offset
+        return radius**2 * math.acos(-d / radius) + d * self.half_chord
+
+
+def _drum_section(radius, rpm, fill_depth, angle_deg, layer_fraction) -> _DrumSection:
+    """Check the drum's arguments and derive its cross-section."""
+    radius = _positive("radius", radius)
+    rpm = _positive("rpm", rpm)
+    fill_depth = _number("fill_depth", fill_depth)
+    if not 0.0 < fill_depth < 1.0:
+        raise ValueError(
+            f"fill_depth is the bed depth as a fraction of the diameter, in (0, 1); "
+            f"got {fill_depth!r}"
+        )
+    angle_deg = _number("angle_deg", angle_deg)
+    if not 0.0 <= angle_deg < 90.0:
+        raise ValueError(f"angle_deg must be in [0, 90), got {angle_deg!r}")
+    layer_fraction = _positive("layer_fraction", layer_fraction)
+    half_chord = 2.0 * radius * math.sqrt(fill_depth * (1.0 - fill_depth))
+    layer = layer_fraction * half_chord
+    depth = 2.0 * radius * fill_depth  # bed depth under the chord's midpoint
+    if layer >= depth:
+        raise ValueError(
+            f"layer_fraction = {layer_fraction!r} makes the flowing layer ({layer:.4g} m) as "
+            f"deep as the bed under the middle of the surface ({depth:.4g} m); it must be "
+            f"thinner: layer_fraction < {depth / half_chord:.4g}"
+        )
+    return _DrumSection(
+        radius=radius,
+        omega=2.0 * math.pi * rpm / 60.0,
+        angle=math.radians(angle_deg),
+        offset=radius * (2.0 * fill_depth - 1.0),
+        half_chord=half_chord,
+        layer=layer,
+    )
+
+
+def _chord_fraction(xc, yc, h: float, normal: tuple[float, float], offset: float):
+    """Exact area fraction of the square cells (centres xc, yc, side h) with m·p < offset.
+
+    Cells the line misses are 0 or 1 exactly; the closed form of `_below_fraction` is
+    used only on the cells the line cuts, where it has no digits to lose.
+    """
+    mx, my = normal
+    reach = 0.5 * h * (abs(mx) + abs(my))  # largest |m·(corner - centre)|
+    distance = mx * xc + my * yc - offset
+    fraction = np.where(distance <= -reach, 1.0, 0.0)
+    cut = np.abs(distance) < reach
+    fraction[cut] = _below_fraction(xc[cut], yc[cut], h, normal, offset)
+    return fraction
+
+
+def _corner_distances(xc, yc, h: float):
+    """Distances from the origin to the nearest and farthest points of square cells."""
+    ax, ay = np.abs(xc), np.abs(yc)
+    nearest = np.hypot(np.maximum(ax - h / 2, 0.0), np.maximum(ay - h / 2, 0.0))
+    return nearest, np.hypot(ax + h / 2, ay + h / 2)
+
+
+def _disc_fraction(xc, yc, h: float, radius: float):
+    """Area fraction of small square cells inside the circle of `radius` about the origin.
+
+    In each cell the circle cuts, the circle is taken as its tangent at the nearest
+    point, whose half-plane is integrated exactly: the error is the sliver between arc
+    and tangent, about ``h³ / (12 R)`` per cell.
+    """
+    nearest, farthest = _corner_distances(xc, yc, h)
+    fraction = np.where(farthest <= radius, 1.0, 0.0)
+    cut = (nearest < radius) & (farthest > radius)
+    x, y = xc[cut], yc[cut]
+    r = np.hypot(x, y)
+    a, b = x / r, y / r
+    x0, x1, y0, y1 = x - h / 2, x + h / 2, y - h / 2, y + h / 2
+    # the closed form of _below_fraction, one normal per cell
+    straight = (np.abs(a) < _AXIS_ALIGNED) | (np.abs(b) < _AXIS_ALIGNED)
+    ab = np.where(straight, 1.0, a * b)
+    area = (
+        _ramp2(radius - a * x1 - b * y1)
+        - _ramp2(radius - a * x0 - b * y1)
+        - _ramp2(radius - a * x1 - b * y0)
+        + _ramp2(radius - a * x0 - b * y0)
+    ) / (ab * h * h)
+    # a cut parallel to an axis is a slab; its closed form above would divide by ~0
+    along_x = np.abs(a) >= np.abs(b)
+    centre = np.where(along_x, x, y)
+    normal = np.where(along_x, a, b)
+    slab = np.clip(0.5 + (radius / np.abs(normal) - np.sign(normal) * centre) / h, 0.0, 1.0)
+    fraction[cut] = np.clip(np.where(straight, slab, area), 0.0, 1.0)
+    return fraction
+
+
+def _segment_fraction(xc, yc, h: float, section: _DrumSection, subcells: int = _WALL_SUBCELLS):
+    """Area fraction of each cell inside the bed: below the free surface, inside the drum.
+
+    Exact in cells the wall misses. A cell the wall cuts is split into ``subcells²``
+    sub-cells, in each of which the surface is integrated exactly and the wall is taken
+    as its tangent (`_disc_fraction`); their product is exact in every sub-cell that
+    only one of them cuts, which is all but the few at the chord's ends.
+    """
+    xc, yc = np.asarray(xc, float), np.asarray(yc, float)
+    normal, offset, radius = section.normal, section.offset, section.radius
+    fill = _chord_fraction(xc, yc, h, normal, offset)
+    nearest, farthest = _corner_distances(xc, yc, h)
+    fill[nearest >= radius] = 0.0
+    wall = (nearest < radius) & (farthest > radius)
+    steps = ((np.arange(subcells) + 0.5) / subcells - 0.5) * h
+    xs, ys = np.broadcast_arrays(
+        xc[wall][:, None, None] + steps[None, :, None],
+        yc[wall][:, None, None] + steps[None, None, :],
+    )
+    hs = h / subcells
+    sub = _chord_fraction(xs, ys, hs, normal, offset) * _disc_fraction(xs, ys, hs, radius)
+    fill[wall] = sub.mean(axis=(1, 2))
+    return fill
+
+
+def rolling_drum(
+    *,
+    ndim: int = 2,
+    radius: float = 0.075,
+    width: float = 0.05,
+    cells: int = 64,
+    rpm: float = 3.26,
+    fill_depth: float = 0.32,
+    angle_deg: float = 27.1,
+    layer_fraction: float = 0.15,
+    n_phases: int = 1,
+    frame: str = "lab",
+    gravity: float = 9.81,
+    margin: int = 2,
+) -> xr.Dataset:
+    """A drum turning in the rolling regime: a kinematic model of its steady flow.
+
+    The drum (radius R, axis along z through the origin) turns counter-clockwise seen
+    from +z at ``ω = 2π rpm / 60``. Its bed is a circular segment under a flat free
+    surface inclined at the dynamic angle β (`angle_deg`), rising towards +x, the side
+    where the wall drags the bed up. A drum is axisymmetric, so this flow is steady in
+    the lab frame: the dataset has ``frame = "lab"`` and its phases are all the same.
+
+    The velocity ``(u, v) = (∂ψ/∂y, -∂ψ/∂x)`` derives from a stream function ψ, so it is
+    exactly incompressible. With chord coordinates ``s`` along the surface (from the
+    chord's midpoint, uphill positive) and ``n`` normal to it (negative into the bed),
+    L the half-chord and ``ψ_s = -ω R²/2``:
+
+    - below the flowing layer the bed turns rigidly: ``ψ_bed = -ω (x² + y²)/2``, i.e.
+      ``(u, v) = ω (-y, x)``;
+    - the flowing layer has thickness ``δ(s) = δ0 sqrt(1 - s²/L²)``,
+      ``δ0 = layer_fraction · L``; in it, with ``η = -n/δ(s)`` in [0, 1],
+      ``ψ = ψ_s + (ψ_bed - ψ_s)(2η - η²)``. ψ and the velocity are continuous at the
+      layer's bottom (``f'(1) = 0``), and the along-surface velocity is largest at the
+      surface, where it points downhill: ``-ω L sqrt(L² - s²) / δ0``;
+    - the wall (``ψ_bed = ψ_s``) and the surface (``η = 0``) are both the streamline
+      ``ψ = ψ_s``: no material crosses them.
+
+    The flux through the layer at ``s`` is ``ψ_bed - ψ_s`` at the layer's bottom,
+    ``ω (L² - s² - δ² + 2 d δ)/2`` (d the chord's signed offset, below), which tends to
+    ``q(s) = ω (L² - s²)/2`` as the layer thins (DESIGN §7).
+
+    Conventions:
+
+    - **fill depth**: the bed's depth along the surface normal through the axis, as a
+      fraction of the diameter, so the chord lies at the signed distance
+      ``d = R (2 fill_depth - 1)`` from the axis (negative: below it), its half-length is
+      ``L = 2R sqrt(fill_depth (1 - fill_depth))``, and ``fill_depth = 0.5`` is a
+      half-full drum. The bed's area does not depend on β: it is the segment of a
+      horizontal bed of depth ``2R fill_depth``, the paper's way of stating the fill.
+    - **velocity**: central differences of ψ sampled at the cell centres, 2h apart
+      (``u = (ψ[i, j+1] - ψ[i, j-1]) / 2h``, ``v = -(ψ[i+1, j] - ψ[i-1, j]) / 2h``), in
+      every cell holding material, zero elsewhere; ψ is ψ_s above the surface and rigid
+      rotation beyond the wall. The central-difference divergence of this field is zero
+      to round-off, and that is the divergence a finite-volume scheme sees when its face
+      velocities are means of cell velocities. The price is an average over 2h: exact
+      in the rigid bed (ψ is quadratic there), second-order accurate in the layer, and
+      smoothed over a cell at the layer's bottom and at the surface.
+    - **fill**: the area fraction of each cell below the surface and inside the drum;
+      exact where only the surface cuts the cell, sampled on 16 × 16 sub-cells where
+      the wall does, so the bed's area is the segment's to a small fraction of a cell.
+      Cells cut by the wall whose centre is outside keep their sliver of material.
+    - **vessel**: cells whose centre is inside the drum (and, in 3-D, between the end
+      walls); a margin of empty cells surrounds it.
+
+    The model is kinematic: the layer's shape and thickness are given, not solved for.
+    It suits fills up to about half. In a fuller drum the chord lies above the axis and,
+    near its ends, the layer thinning to nothing must still pass on a flux of order
+    ω d δ fed by the bed beneath: its velocity across the surface grows without bound
+    there, if slowly (as the inverse square root of the distance to the end).
+
+    Parameters
+    ----------
+    ndim : {2, 3}
+        2: the cross-section in (x, y), no z (plane strain). 3: the section extruded
+        along z between flat end walls, ``vz = 0``.
+    radius : float
+        Drum radius R in m.
+    width : float
+        Drum length along z in m (3-D); a 2-D dataset records it but does not use it.
+    cells : int
+        Cells across the drum's diameter (at least 4); the spacing is ``2R / cells`` on
+        every axis.
+    rpm : float
+        Rotation speed (> 0).
+    fill_depth : float
+        Bed depth as a fraction of the diameter, in (0, 1) (see Conventions).
+    angle_deg : float
+        Dynamic angle of repose β of the free surface, in [0, 90) degrees.
+    layer_fraction : float
+        Flowing-layer thickness at the chord's midpoint as a fraction of the half-chord
+        L (> 0, and thinner than the bed there).
+    n_phases : int
+        Number of (identical) phases stored.
+    frame : {"lab"}
+        Frame attribute; only the lab frame, where the flow is steady, is offered.
+    gravity : float
+        Gravity attribute in m/s².
+    margin : int
+        Empty cells outside the vessel on every side of the grid (at least 1).
+
+    Returns
+    -------
+    xarray.Dataset
+        A steady ``flow/1`` dataset centred on the drum's axis.
+
+    Examples
+    --------
+    The paper's calibration drum (Table 2): 150 mm across, 50 mm wide, a bed 32 % of
+    the diameter deep, at 3.26 rpm.
+
+    >>> flow = rolling_drum()  # doctest: +SKIP
+    >>> flow = rolling_drum(ndim=3, cells=48)  # doctest: +SKIP
+    """
+    if ndim not in (2, 3):
+        raise ValueError(f"ndim must be 2 or 3, got {ndim!r}")
+    section = _drum_section(radius, rpm, fill_depth, angle_deg, layer_fraction)
+    radius, rpm = section.radius, float(rpm)
+    width = _positive("width", width)
+    cells = _positive_int("cells", cells, 4)
+    margin = _positive_int("margin", margin, 1)
+    n_phases = _positive_int("n_phases", n_phases)
+    if frame != "lab":
+        raise ValueError(
+            f"frame must be 'lab' for a drum, got {frame!r}: its flow is steady only in the "
+            "lab frame (in the vessel frame the bed turns backwards through the drum)"
+        )
+    gravity = _positive("gravity", gravity, allow_zero=True)
+
+    h = 2.0 * radius / cells
+    n_xy = cells + 2 * margin
+    centres_xy = _centres(-n_xy * h / 2, n_xy * h / 2, n_xy)
+    axes = {"x": centres_xy, "y": centres_xy.copy()}
+    xc, yc = np.meshgrid(centres_xy, centres_xy, indexing="ij")
+    inside = np.hypot(xc, yc) < radius
+    fill_xy = _segment_fraction(xc, yc, h, section)
+    material = fill_xy > 0
+    vx_xy, vy_xy = (np.where(material, v, 0.0) for v in section.grid_velocity(axes["x"], axes["y"]))
+
+    if ndim == 3:
+        n_z = math.ceil(width / h - 1e-9) + 2 * margin
+        z = _centres(-n_z * h / 2, n_z * h / 2, n_z)
+        axes["z"] = z
+        # Fraction of each layer of cells between the end walls, so that the material's
+        # volume is the segment's area times the width, as in 2-D; exactly 1 inside.
+        overlap = np.minimum(z + h / 2, width / 2) - np.maximum(z - h / 2, -width / 2)
+        along = np.where(np.abs(z) + h / 2 <= width / 2, 1.0, np.clip(overlap / h, 0.0, 1.0))
+        fill = fill_xy[:, :, None] * along[None, None, :]
+        vessel = inside[:, :, None] & (np.abs(z) < width / 2)[None, None, :]
+        velocity = [
+            np.where(fill > 0, vx_xy[:, :, None], 0.0),
+            np.where(fill > 0, vy_xy[:, :, None], 0.0),
+            np.zeros(fill.shape),
+        ]
+    else:
+        fill, vessel, velocity = fill_xy, inside, [vx_xy, vy_xy]
+
+    params = {
+        "ndim": ndim,
+        "radius": radius,
+        "width": width,
+        "cells": cells,
+        "rpm": rpm,
+        "fill_depth": float(fill_depth),
+        "angle_deg": float(angle_deg),
+        "layer_fraction": float(layer_fraction),
+        "n_phases": n_phases,
+        "margin": margin,
+    }
+    return _build(
+        "rolling_drum",
+        params,
+        axes,
+        velocity,
+        fill,
+        vessel.astype(np.int8),
+        frame=frame,
         rpm=rpm,
         gravity=gravity,
     )
