@@ -159,6 +159,12 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
     if unknown:
         raise TypeError(f"mix() got unknown keyword(s) {unknown}; known: {sorted(known)}")
     values.update(overrides)
+    if "revolutions" in overrides and "snapshots" not in overrides and values.get("snapshots"):
+        # the scene's snapshots were planned for its own length: keep those that fit
+        total = overrides["revolutions"]
+        values["snapshots"] = tuple(
+            sorted({r for r in values["snapshots"] if r <= total} | {total})
+        )
     return MixSettings(**values)
 
 

@@ -1,0 +1,81 @@
+"""The blendxr command: main job, file outputs, and one-line errors with status 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import blendxr as bx
+from blendxr.cli import main
+
+
+def test_mix_writes_valid_files_and_a_picture(tmp_path, capsys):
+    status = main(
+        [
+            "mix",
+            "swirl-2d",
+            "-o",
+            str(tmp_path),
+            "--revolutions",
+            "0.5",
+            "--cells",
+            "24",
+            "--save-flow",
+            "-q",
+        ]
+    )
+    assert status == 0
+    for name in ("mixing.nc", "flow.nc", "mixing.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    mixed = bx.open_mixing(tmp_path / "mixing.nc")
+    bx.validate(mixed)
+    assert bx.load_scene(mixed.attrs["scene"]).name == "swirl-2d"
+    np.testing.assert_allclose(mixed["revolution"].values[-1], 0.5)
+    out = capsys.readouterr().out
+    assert "RSD" in out and "wall time" in out
+
+
+@pytest.mark.parametrize(
+    "argv, word",
+    [
+        (["mix", "no-such-scene"], "no-such-scene"),
+        (["mix", "swirl-2d", "--k1", "-1"], "k1"),
+        (["mix", "swirl-2d", "--dt", "1000", "--revolutions", "0.1"], "stability limit"),
+        (["validate", "missing.nc"], "missing.nc"),
+    ],
+)
+def test_bad_input_gives_one_line_and_status_2(argv, word, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv, "-q"] if argv[0] == "mix" else argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err
+
+
+def test_invalid_dataset_is_reported_by_validate(tmp_path, capsys):
+    flow = bx.flows.uniform(velocity=(0.1, 0.0), cells=8)
+    flow["vx"].attrs["units"] = "km/h"
+    flow.to_netcdf(tmp_path / "bad.nc")
+    assert main(["validate", str(tmp_path / "bad.nc")]) == 2
+    assert "vx" in capsys.readouterr().err
+
+
+def test_console_script_error_has_no_traceback(tmp_path):
+    run = subprocess.run(
+        [sys.executable, "-m", "blendxr.cli", "mix", "nope"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 2
+    assert "Traceback" not in run.stderr and run.stderr.startswith("blendxr: error:")
+
+
+def test_scenes_lists_builtin_scenes(capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    for name in bx.builtin_scenes():
+        assert name in out
