@@ -364,3 +364,17 @@ def test_only_the_phases_in_use_are_read():
     mixed = bx.mix(flow, k1=0.0, revolutions=0.25, output_every=0.25, cells=24, progress=False)
     # a quarter revolution touches phases 0..6 (plus one prefetched ahead)
     assert mixed.attrs["phases_read"] <= 8
+
+
+@pytest.mark.parametrize("loading", ["top-bottom", "transverse", "axial"])
+def test_loadings_put_equal_volumes_of_each_colour(loading):
+    """A tilted, asymmetric bed is still loaded half and half (volume median plane)."""
+    ndim = 3 if loading == "axial" else 2
+    flow = bx.flows.rolling_drum(ndim=ndim, cells=24, fill_depth=0.3, angle_deg=30.0)
+    # an ADE grid that coincides with the flow grid, so both hold the same material
+    cells = flow.sizes["x"]
+    mixed = bx.mix(flow, initial=loading, k1=0.0, revolutions=0.01, cells=cells, progress=False)
+    fill0 = flow["fill"].isel(rev_phase=0)
+    cell_volume = np.prod([float(flow[d][1] - flow[d][0]) for d in fill0.dims])
+    material = float(fill0.where(flow["vessel"] > 0, 0.0).sum()) * cell_volume
+    assert mixed["mass_a"].values[0] == pytest.approx(0.5 * material, rel=1e-9)

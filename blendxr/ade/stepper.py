@@ -39,6 +39,9 @@ _ALIASES = {"side-side": "axial", "left-right": "axial"}
 MATERIAL_THRESHOLD = 0.5
 # FV: c is defined where the carried material fraction exceeds this.
 M_MIN = 1e-9
+# FV: material moves only among cells the flow fills (blended fill above this); no flux
+# crosses the free surface into cells the flow leaves empty (DESIGN §5).
+SUPPORT_FILL = 1e-9
 # How far outside [0, 1] a value may stray (round-off) before the run is stopped.
 BOUND_TOLERANCE = 1e-6
 
@@ -228,6 +231,12 @@ class _Fields:
             np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
         return True
 
+    def support(self, vessel: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Cells the flow gives material (fill > 0) inside the vessel, as uint8."""
+        np.greater(self.fill, SUPPORT_FILL, out=out.view(bool))
+        out &= vessel
+        return out
+
 
 # ----------------------------------------------------------------------------- set-up
 
@@ -263,18 +272,19 @@ def _initial_concentration(settings: MixSettings, grid: AdeGrid, fill0: np.ndarr
     axis = {"top-bottom": 1, "transverse": 0, "axial": 2}[loading]
     centres = grid.coords[axis]
     h = grid.spacing[axis]
-    if loading == "top-bottom":
-        # the plane that puts half of the material volume above it
-        profile = fill0.sum(axis=tuple(a for a in range(grid.ndim) if a != axis))
-        cumulative = np.cumsum(profile) / profile.sum()
-        j = int(np.searchsorted(cumulative, 0.5))
-        below = cumulative[j - 1] if j > 0 else 0.0
-        frac = (0.5 - below) / max(profile[j] / profile.sum(), 1e-300)
-        split = centres[j] - 0.5 * h + frac * h
-        above = np.clip((centres + 0.5 * h - split) / h, 0.0, 1.0)  # species A on top
-        line = above
-    else:
-        line = np.clip((0.0 - (centres - 0.5 * h)) / h, 0.0, 1.0)  # species A at x<0 / z<0
+    # Every loading splits the material into equal volumes, as a loaded blender holds
+    # equal amounts of the two colours: the plane is the volume median along the axis
+    # (x = 0 or z = 0 for a bed symmetric about that plane, as DESIGN §2 states).
+    profile = fill0.sum(axis=tuple(a for a in range(grid.ndim) if a != axis))
+    cumulative = np.cumsum(profile) / profile.sum()
+    j = int(np.searchsorted(cumulative, 0.5))
+    below = cumulative[j - 1] if j > 0 else 0.0
+    frac = (0.5 - below) / max(profile[j] / profile.sum(), 1e-300)
+    split = centres[j] - 0.5 * h + frac * h
+    # the share of each cell beyond the plane
+    beyond = np.clip((centres + 0.5 * h - split) / h, 0.0, 1.0)
+    # species A on top (top-bottom), at low x (transverse) or low z (axial)
+    line = beyond if loading == "top-bottom" else 1.0 - beyond
     shape = [1] * grid.ndim
     shape[axis] = len(line)
     return np.broadcast_to(line.reshape(shape), grid.shape).astype(float)
@@ -354,10 +364,9 @@ class _Run:
             flow, self.grid, diffusion, memory_budget=s.memory_budget_mb * 2**20
         )
         self.vessel = self.reader.vessel.astype(np.uint8)
+        self.support = self.vessel.copy()
         self.state = _State(s.scheme, self.grid.shape)
-        self.fields = _Fields(
-            self.ndim, self.grid.shape, self.with_diffusion, with_fill=s.scheme == "lax-wendroff"
-        )
+        self.fields = _Fields(self.ndim, self.grid.shape, self.with_diffusion, with_fill=True)
         self.lw_plan = (
             kernels.LaxWendroffPlan(self.grid.shape) if s.scheme == "lax-wendroff" else None
         )
@@ -534,6 +543,8 @@ class _Run:
         f = self.fields
         changed = f.blend(a, b, w)
         if self.settings.scheme != "lax-wendroff":
+            if changed:
+                f.support(self.vessel, self.support)
             return
         if changed or dt != self._lw_dt:
             plan, st = self.lw_plan, self.state
@@ -557,7 +568,7 @@ class _Run:
                 st.work,
                 *f.velocities,
                 *diffs,
-                self.vessel,
+                self.support,
                 dt,
                 *h,
                 st.reverse,
