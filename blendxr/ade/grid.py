@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
-__all__ = ["AdeGrid", "AxisMap", "interpolate", "extend_into_empty"]
+__all__ = ["AdeGrid", "AxisMap", "interpolate", "interpolate_into", "extend_into_empty"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,45 @@ def interpolate(values: np.ndarray, maps: tuple) -> np.ndarray:
         shape[axis] = len(m.weight)
         w = m.weight.reshape(shape)
         out = lo + w * (hi - lo)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _bilinear(src, l0, w0, l1, w1, out):
+    for i in prange(l0.size):
+        a, wa = l0[i], w0[i]
+        for j in range(l1.size):
+            b, wb = l1[j], w1[j]
+            lo = src[a, b] + wb * (src[a, b + 1] - src[a, b])
+            hi = src[a + 1, b] + wb * (src[a + 1, b + 1] - src[a + 1, b])
+            out[i, j] = lo + wa * (hi - lo)
+
+
+@njit(parallel=True, cache=True)
+def _trilinear(src, l0, w0, l1, w1, l2, w2, out):
+    for i in prange(l0.size):
+        a, wa = l0[i], w0[i]
+        for j in range(l1.size):
+            b, wb = l1[j], w1[j]
+            for k in range(l2.size):
+                c, wc = l2[k], w2[k]
+                p00 = src[a, b, c] + wc * (src[a, b, c + 1] - src[a, b, c])
+                p01 = src[a, b + 1, c] + wc * (src[a, b + 1, c + 1] - src[a, b + 1, c])
+                p10 = src[a + 1, b, c] + wc * (src[a + 1, b, c + 1] - src[a + 1, b, c])
+                p11 = src[a + 1, b + 1, c] + wc * (src[a + 1, b + 1, c + 1] - src[a + 1, b + 1, c])
+                lo = p00 + wb * (p01 - p00)
+                hi = p10 + wb * (p11 - p10)
+                out[i, j, k] = lo + wa * (hi - lo)
+
+
+def interpolate_into(values: np.ndarray, maps: tuple, out: np.ndarray) -> np.ndarray:
+    """Compiled separable linear interpolation into ``out`` (same result as
+    :func:`interpolate`, its NumPy twin, in the same order of operations per axis)."""
+    src = np.ascontiguousarray(values, dtype=np.float64)
+    args = []
+    for m in maps:
+        args += [m.lower, m.weight]
+    (_trilinear if src.ndim == 3 else _bilinear)(src, *args, out)
     return out
 
 

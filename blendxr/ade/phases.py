@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid import AdeGrid, AxisMap, extend_into_empty, inside_mask, interpolate
+from .grid import AdeGrid, AxisMap, extend_into_empty, inside_mask, interpolate, interpolate_into
 
 __all__ = ["PreparedPhase", "CyclicPhaseReader"]
 
@@ -115,31 +115,32 @@ class CyclicPhaseReader:
         fill = np.clip(arrays["fill"], 0.0, 1.0)
         material = fill > 0
         velocities = tuple(arrays[n] for n in _VELOCITY_NAMES[: self.ndim])
-        if callable(self._diffusion):
-            d_flow = self._diffusion(velocities, fill, self._flow_spacing)
-            diffusivities = tuple(
-                interpolate(extend_into_empty(d, material, self._vessel_flow), self._maps)
-                for d in d_flow
-            )
-        elif self._diffusion is None:
-            diffusivities = None
-        else:
-            diffusivities = tuple(
-                np.where(self.vessel, float(value), 0.0) for value in self._diffusion
-            )
-        velocities_ade = tuple(
-            np.where(
-                self.vessel,
-                interpolate(extend_into_empty(v, material, self._vessel_flow), self._maps),
-                0.0,
-            )
-            for v in velocities
-        )
-        fill_ade = np.where(self.vessel, np.clip(interpolate(fill, self._maps), 0.0, 1.0), 0.0)
+        shape = self.grid.shape
+        outside = ~self.vessel
+
+        def onto_grid(values, out):
+            interpolate_into(values, self._maps, out)
+            out[outside] = 0.0
+            return out
+
+        vel = np.empty((self.ndim, *shape))
+        for out, v in zip(vel, velocities, strict=True):
+            onto_grid(extend_into_empty(v, material, self._vessel_flow), out)
         dif = None
-        if diffusivities is not None:
-            dif = np.stack([np.where(self.vessel, np.maximum(d, 0.0), 0.0) for d in diffusivities])
-        return PreparedPhase(k, np.stack(velocities_ade), dif, fill_ade)
+        if callable(self._diffusion):
+            dif = np.empty((self.ndim, *shape))
+            d_flow = self._diffusion(velocities, fill, self._flow_spacing)
+            for out, d in zip(dif, d_flow, strict=True):
+                onto_grid(extend_into_empty(d, material, self._vessel_flow), out)
+                np.maximum(out, 0.0, out=out)
+        elif self._diffusion is not None:
+            dif = np.empty((self.ndim, *shape))
+            for out, value in zip(dif, self._diffusion, strict=True):
+                out[...] = float(value)
+                out[outside] = 0.0
+        fill_ade = onto_grid(fill, np.empty(shape))
+        np.clip(fill_ade, 0.0, 1.0, out=fill_ade)
+        return PreparedPhase(k, vel, dif, fill_ade)
 
     def get(self, k: int) -> PreparedPhase:
         """The prepared phase ``k`` (cyclic), reading it if needed; prefetches ``k + 1``."""
