@@ -12,7 +12,7 @@ from pathlib import Path
 
 __all__ = ["main"]
 
-DEFAULT_MIX_SCENE = "swirl-2d"
+DEFAULT_MIX_SCENE = "drum-2d"
 
 
 def _flow_for_scene(scene, flow_path=None):
