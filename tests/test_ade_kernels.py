@@ -193,6 +193,78 @@ def test_finite_volume_matches_twin(ndim, reverse, n_diff_sub):
     np.testing.assert_allclose(again_q, want_q, rtol=0, atol=1e-12)
 
 
+def test_finite_volume_matches_twin_on_long_lines_with_many_substeps():
+    """Lines longer than the kernel's row window, several blocks per sweep, 5 sub-steps."""
+    rng = np.random.default_rng(150)
+    shape = (45, 13, 38)
+    vessel, grids = _ball_vessel(shape, radius=0.95)
+    spacing = (0.05, 0.15, 0.06)
+    vel = [3.0 * _smooth(rng, shape) for _ in range(3)]
+    dif = [0.2 * np.abs(_smooth(rng, shape)) for _ in range(3)]
+    m = np.where((vessel > 0) & (grids[1] < 0.3), rng.uniform(0.2, 1.0, shape), 0.0)
+    q = m * rng.uniform(0.0, 1.0, shape)
+    dt = 0.9 * finite_volume_max_dt(vel, spacing, vessel)
+    n_sub = 5
+    assert diffusion_substeps(dif, spacing, dt) <= n_sub
+    args = (*vel, *dif, vessel, dt, *spacing)
+    work = kernels.fv_workspace(shape)
+    for reverse in (False, True):
+        got_m, got_q = np.empty(shape), np.empty(shape)
+        want_m, want_q = np.empty(shape), np.empty(shape)
+        kernels.fv_step_3d(m, q, got_m, got_q, work, *args, reverse, n_sub)
+        reference.fv_step_3d(m, q, want_m, want_q, None, *args, reverse, n_sub)
+        np.testing.assert_allclose(got_m, want_m, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got_q, want_q, rtol=0, atol=1e-12)
+        assert not np.array_equal(got_q, q)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_finite_volume_same_bits_on_any_thread_count(ndim):
+    """How the sweeps are split between threads changes no bit of the result."""
+    rng = np.random.default_rng(160 + ndim)
+    case = _fv_case(rng, ndim)
+    before = numba.get_num_threads()
+    results = []
+    try:
+        for threads in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS), before}):
+            numba.set_num_threads(threads)
+            results.append(_last(_fv_run(case, 4)))
+    finally:
+        numba.set_num_threads(before)
+    for m, q in results[1:]:
+        np.testing.assert_array_equal(m, results[0][0])
+        np.testing.assert_array_equal(q, results[0][1])
+
+
+def test_finite_volume_rejects_strided_arrays():
+    rng = np.random.default_rng(170)
+    case = _fv_case(rng, 2)
+    shape = case["m"].shape
+    strided = np.empty((shape[0], 2 * shape[1]))[:, ::2]
+    with pytest.raises(ValueError, match="C-contiguous"):
+        kernels.fv_step_2d(
+            case["m"], case["q"], strided, np.empty(shape), kernels.fv_workspace(shape),
+            *case["vel"], *case["dif"], case["vessel"], case["dt"], *case["spacing"], False, 0,
+        )  # fmt: skip
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_lax_wendroff_ignores_coefficients_of_other_cells(ndim):
+    """The stencil may read coefficients of surface cells in a row; they must not leak."""
+    rng = np.random.default_rng(180 + ndim)
+    c, vel, dif, material, fill, dt, spacing = _lw_case(rng, ndim)
+    plan = kernels.LaxWendroffPlan(c.shape)
+    plan.coef[...] = np.nan
+    plan.classify(material)
+    plan.coefficients(vel, dif, dt, spacing)
+    got = c.copy()
+    plan.apply(c, got)
+    want = np.empty_like(c)
+    twin = reference.lw_step_2d if ndim == 2 else reference.lw_step_3d
+    twin(c, want, *vel, *dif, material, dt, *spacing)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_concentration_matches_twin(ndim):
     rng = np.random.default_rng(7)
