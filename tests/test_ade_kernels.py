@@ -266,6 +266,31 @@ def test_lax_wendroff_ignores_coefficients_of_other_cells(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_lax_wendroff_plan_surface_follows_fill_and_classification(ndim):
+    """The plan keeps the inward steps between calls; a new fill or a new
+    classification must be taken into account."""
+    rng = np.random.default_rng(190 + ndim)
+    shape = SHAPES[ndim]
+    twin = reference.lw_free_surface_2d if ndim == 2 else reference.lw_free_surface_3d
+    plan = kernels.LaxWendroffPlan(shape)
+    fill = _blob_fill(rng, shape)
+    out = rng.uniform(0.0, 1.0, shape)
+    for change in ("start", "other array", "same array, reclassified"):
+        if change == "other array":
+            # same material, other normals
+            fill = np.where(fill >= 0.5, 0.5 + 0.5 * rng.uniform(size=shape), fill)
+        elif change == "same array, reclassified":
+            fill[...] = _blob_fill(rng, shape)
+        if change != "other array":
+            plan.classify((fill >= 0.5).astype(np.uint8))
+        for _ in range(2):
+            out = rng.uniform(0.0, 1.0, shape)
+            want = twin(out.copy(), (fill >= 0.5).astype(np.uint8), fill)
+            plan.surface(out, fill)
+            np.testing.assert_allclose(out, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_concentration_matches_twin(ndim):
     rng = np.random.default_rng(7)
     case = _fv_case(rng, ndim)

@@ -417,8 +417,11 @@ def _normal_step(n, nmax):
 
 
 @njit(**_JIT)
-def _surface_rule(out, fill, cells, masks, strides, ndim):
-    """The free-surface rule on flat ``out`` for the listed surface cells."""
+def _surface_steps(fill, cells, masks, strides, ndim, steps):
+    """Flat offset of each surface cell's source: the cell one step inward along the normal.
+
+    ``steps[s]`` is 0 where that cell is not interior (the box mean is used then).
+    """
     sx, sy, sz = strides[0], strides[1], strides[2]
     for s in prange(cells.size):
         f = cells[s]
@@ -433,21 +436,31 @@ def _surface_rule(out, fill, cells, masks, strides, ndim):
             oz = 0
         ox = _normal_step(nxv, nmax)
         oy = _normal_step(nyv, nmax)
-        mask = masks[s]
         if ndim == 3:
             bit = (ox + 1) * 9 + (oy + 1) * 3 + (oz + 1)
         else:
             bit = (ox + 1) * 3 + (oy + 1)
-        if (mask >> bit) & 1:
-            out[f] = out[f + ox * sx + oy * sy + oz * sz]
+        steps[s] = ox * sx + oy * sy + oz * sz if (masks[s] >> bit) & 1 else 0
+
+
+@njit(**_JIT)
+def _surface_rule(out, cells, masks, steps, strides, ndim):
+    """The free-surface rule on flat ``out`` for the listed cells (see :func:`_surface_steps`)."""
+    sx, sy, sz = strides[0], strides[1], strides[2]
+    e_lo = -1 if ndim == 3 else 0
+    e_hi = 2 if ndim == 3 else 1
+    for s in prange(cells.size):
+        f = cells[s]
+        step = steps[s]
+        if step != 0:
+            out[f] = out[f + step]
             continue
+        mask = masks[s]
         if mask == 0:
             continue
         total = 0.0
         count = 0
         bit = 0
-        e_lo = -1 if ndim == 3 else 0
-        e_hi = 2 if ndim == 3 else 1
         for a in range(-1, 2):
             for b in range(-1, 2):
                 for e in range(e_lo, e_hi):
@@ -456,6 +469,13 @@ def _surface_rule(out, fill, cells, masks, strides, ndim):
                         count += 1
                     bit += 1
         out[f] = total / count
+
+
+def _free_surface(out, cls, rows, fill):
+    cells, masks, strides = _list_surface_cells(cls, rows)
+    steps = np.empty_like(cells)
+    _surface_steps(fill.reshape(-1), cells, masks, strides, cls.ndim, steps)
+    _surface_rule(out.reshape(-1), cells, masks, steps, strides, cls.ndim)
 
 
 def lw_surface_2d(out, cls, rows, fill):
@@ -467,17 +487,15 @@ def lw_surface_2d(out, cls, rows, fill):
     not interior, the mean of the interior cells of the box is used; if there are none,
     the value is kept. Only interior cells are read and only surface cells written, so
     the parallel pass is free of races. Cells of the outermost layer are left alone.
-    :class:`LaxWendroffPlan` lists the surface cells once per classification; this
-    function lists them on every call.
+    :class:`LaxWendroffPlan` keeps the surface cells and their steps between calls; this
+    function finds them on every call.
     """
-    cells, masks, strides = _list_surface_cells(cls, rows)
-    _surface_rule(out.reshape(-1), fill.reshape(-1), cells, masks, strides, 2)
+    _free_surface(out, cls, rows, fill)
 
 
 def lw_surface_3d(out, cls, rows, fill):
     """Free-surface rule of the paper in 3-D; see :func:`lw_surface_2d`."""
-    cells, masks, strides = _list_surface_cells(cls, rows)
-    _surface_rule(out.reshape(-1), fill.reshape(-1), cells, masks, strides, 3)
+    _free_surface(out, cls, rows, fill)
 
 
 class LaxWendroffPlan:
@@ -497,17 +515,20 @@ class LaxWendroffPlan:
         self.rows = np.zeros((*shape[:-1], 2), np.int64)
         n_coef = LW_COEFFICIENTS_3D if ndim == 3 else LW_COEFFICIENTS_2D
         self.coef = np.zeros((n_coef, *shape))
+        self._list_surface()
+
+    def _list_surface(self):
         self.surface_cells, self.surface_masks, self.strides = _list_surface_cells(
             self.cls, self.rows
         )
+        self.surface_steps = np.zeros_like(self.surface_cells)
+        self._steps_from = None  # the fill the steps were computed from
 
     def classify(self, material):
         """Mark interior, surface and empty cells from a material mask."""
         classify = lw_classify_3d if self.ndim == 3 else lw_classify_2d
         classify(material, self.cls, self.rows, self.scratch)
-        self.surface_cells, self.surface_masks, self.strides = _list_surface_cells(
-            self.cls, self.rows
-        )
+        self._list_surface()
 
     def coefficients(self, velocities, diffusivities, dt, spacing):
         """Fold the fields and dt into the per-cell coefficients (after :meth:`classify`)."""
@@ -521,12 +542,29 @@ class LaxWendroffPlan:
         (lw_apply_3d if self.ndim == 3 else lw_apply_2d)(c, out, self.coef, self.cls, self.rows)
 
     def surface(self, out, fill):
-        """The free-surface copy, in place on ``out``."""
+        """The free-surface copy, in place on ``out``.
+
+        ``fill`` is the field the classified material came from: the inward step of each
+        surface cell is found from it at the first call after :meth:`classify` (or when
+        another array is passed) and reused, since reading ``fill`` around every surface
+        cell took as long as the copy itself. Call :meth:`classify` again after changing
+        ``fill`` in place.
+        """
+        if self._steps_from is not fill:
+            _surface_steps(
+                fill.reshape(-1),
+                self.surface_cells,
+                self.surface_masks,
+                self.strides,
+                self.ndim,
+                self.surface_steps,
+            )
+            self._steps_from = fill
         _surface_rule(
             out.reshape(-1),
-            fill.reshape(-1),
             self.surface_cells,
             self.surface_masks,
+            self.surface_steps,
             self.strides,
             self.ndim,
         )
