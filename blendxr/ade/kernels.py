@@ -664,9 +664,11 @@ def fv_workspace(shape):
 # wavefront: at time t grid row t is read in, stage s works on row t - 1 - s and row
 # t - 1 - n_stages is written out, so only ``ring`` rows of each scratch field are alive
 # and they stay in cache. Along z (axis 2, contiguous) a block is ``width`` whole lines
-# and each stage runs along them. Blocks without material are copied through (no face
-# of theirs can move anything). 2-D grids run as (nx, 1, ny) for the x sweep and
-# (1, nx, ny) for the y sweep, so one compiled kernel serves both dimensions.
+# and each stage runs along them. Along each block only cells from one before the first
+# to one after the last cell holding material are updated; the rest, and blocks without
+# material, are copied through (no face between two empty cells moves anything). 2-D
+# grids run as (nx, 1, ny) for the x sweep and (1, nx, ny) for the y sweep, so one
+# compiled kernel serves both dimensions.
 
 #: Scratch fields per worker: m, q, c, new m, new q, then five face/cell fields reused
 #: between stages, face openness, face diffusivity and a per-line validity mask.
@@ -733,41 +735,75 @@ def _fv_block(
         b0 = o * s0 + r0 * n2
         nl = min(width, n1 - r0)
         plane_ok = lo0 <= o < hi0
-        for col in range(n2):
-            VALID[col] = 1.0 if 1 <= col <= n2 - 2 else 0.0
     n_rows = nl if along else na
     row_len = n2 if along else nl
     pos_hi = np.uint64(max(na - 3, 0))
-    # a block without material (or outside the updated range) is copied through
-    n_mat = 0
+    # positions along the sweep holding material: first .. last (-1: none)
+    first = -1
+    last = -1
     if plane_ok:
         for row in range(n_rows):
-            g = np.uint64(b0 + row * g_row)
-            for k in range(np.uint64(0), np.uint64(row_len)):
-                n_mat += 1 if sm[g + k] > 0.0 else 0
-    if n_mat == 0:
+            if along:
+                gi = b0 + row * g_row
+                lo = 0
+                while lo < n2 and sm[gi + lo] <= 0.0:
+                    lo += 1
+                if lo < n2:
+                    hi = n2 - 1
+                    while sm[gi + hi] <= 0.0:
+                        hi -= 1
+                    first = lo if first < 0 else min(first, lo)
+                    last = max(last, hi)
+            else:
+                g = np.uint64(b0 + row * g_row)
+                n_mat = 0
+                for k in range(np.uint64(0), np.uint64(row_len)):
+                    n_mat += 1 if sm[g + k] > 0.0 else 0
+                if n_mat > 0:
+                    first = row if first < 0 else first
+                    last = row
+    if first < 0:
+        # no material, or outside the updated range: copied through
         for row in range(n_rows):
             g = np.uint64(b0 + row * g_row)
             for k in range(np.uint64(0), np.uint64(row_len)):
                 dm[g + k] = sm[g + k]
                 dq[g + k] = sq[g + k]
         return
+    # Only a window of positions can change: an empty cell next to material may gain some,
+    # and a face between two empty cells carries nothing. Read in w0 .. w1 - 1, compute
+    # faces w0 .. f_hi and cells c_lo .. c_hi; everything else is copied through.
+    w0 = max(first - 2, 0)
+    w1 = min(last + 3, na)
+    f_hi = min(w1 - 2, na - 2)
+    c_lo = max(w0 + 1, 1)
+    c_hi = f_hi
     if along:
+        for col in range(n2):
+            VALID[col] = 1.0 if c_lo <= col <= c_hi else 0.0
         n_t = n_stages + 2
         pitch = n2
         mask = -1
     else:
-        n_t = na + n_stages + 1
+        for row in range(na):
+            if w0 <= row < w1:
+                continue
+            g = np.uint64(b0 + row * g_row)
+            for k in range(np.uint64(0), np.uint64(row_len)):
+                dm[g + k] = sm[g + k]
+                dq[g + k] = sq[g + k]
+        n_t = w1 - w0 + n_stages + 1
         pitch = width
         mask = ring - 1
-    for t in range(n_t):
+    for step in range(n_t):
+        t = step if along else w0 + step
         # read rows in (c = q / m is computed once per cell, for the colour stage)
         if along:
             in_hi = nl if t == 0 else 0
             in_lo = 0
         else:
             in_lo = t
-            in_hi = t + 1 if t < na else t
+            in_hi = t + 1 if t < w1 else t
         for row in range(in_lo, in_hi):
             g = np.uint64(b0 + row * g_row)
             cb = np.uint64((row & mask) * pitch)
@@ -777,6 +813,13 @@ def _fv_block(
                 M[cb + k] = x
                 Q[cb + k] = y
                 CC[cb + k] = y / x
+            # the cells just outside the window keep their m: diffusion reads it there
+            if along:
+                DM[cb + w0] = M[cb + w0]
+                DM[cb + w1 - 1] = M[cb + w1 - 1]
+            elif row == w0 or row == w1 - 1:
+                for k in range(np.uint64(0), np.uint64(row_len)):
+                    DM[cb + k] = M[cb + k]
         if along:
             stage = t - 1
             task_lo = max(lo1 - r0, 0) if 0 <= stage < n_stages else 0
@@ -791,14 +834,14 @@ def _fv_block(
                 bl = bc - one
                 bu = bc + one
                 gb = np.uint64(b0 + task * n2)
-                k_lo = np.uint64(0 if face else 1)
-                k_hi = np.uint64(n2 - 1)
+                k_lo = np.uint64(w0 if face else c_lo)
+                k_hi = np.uint64(f_hi + 1 if face else c_hi + 1)
                 rpos = np.uint64(0)
             else:
                 stage = task
                 p = t - 1 - stage
                 face = stage % 2 == 0
-                if p < (0 if face else 1) or p > na - 2:
+                if p < (w0 if face else c_lo) or p > (f_hi if face else c_hi):
                     continue
                 bc = np.uint64((p & mask) * pitch)
                 bl = np.uint64(((p - 1) & mask) * pitch)
@@ -970,11 +1013,11 @@ def _fv_block(
             out_hi = nl if t == n_t - 1 else 0
         else:
             out_lo = t - 1 - n_stages
-            out_hi = out_lo + 1 if out_lo >= 0 else out_lo
+            out_hi = out_lo + 1 if out_lo >= w0 else out_lo
         for row in range(out_lo, out_hi):
             g = np.uint64(b0 + row * g_row)
             cb = np.uint64((row & mask) * pitch)
-            row_ok = (lo1 <= r0 + row < hi1) if along else (1 <= row <= na - 2)
+            row_ok = (lo1 <= r0 + row < hi1) if along else (c_lo <= row <= c_hi)
             for k in range(np.uint64(0), np.uint64(row_len)):
                 new = row_ok & (VALID[k] != 0.0)
                 dm[g + k] = DM[cb + k] if new else M[cb + k]
@@ -1014,7 +1057,9 @@ def _fv_plan(n0, n1, n2, axis, n_diff_sub):
     cells_max = _FV_BLOCK_BYTES // (8 * _FV_FIELDS)
     if axis == 2:
         ring = 1
-        width = max(1, min(n1, cells_max // n2))
+        # a few lines per block: blocks of empty lines are skipped, and the window of
+        # positions holding material (see _fv_block) stays tight
+        width = max(1, min(n1, cells_max // n2, 8))
         if n0 * -(-n1 // width) < 4 * threads:
             # few planes (2-D): smaller blocks, so that every thread gets some
             width = max(1, min(width, -(-n0 * n1 // (4 * threads))))
