@@ -800,3 +800,49 @@ def test_pair_limits_bound_every_blend_of_two_phases(ndim):
         dif = (1 - w) * dif_a + w * dif_b
         assert lw <= stability.lax_wendroff_max_dt(tuple(vel), tuple(dif), spacing, material)
         assert fv <= stability.finite_volume_max_dt(tuple(vel), spacing, vessel)
+
+
+def _pair_limit_by_hand(vel_a, dif_a, vel_b, dif_b, material, spacing):
+    """Every material cell's Lax-Wendroff limit for two phases, whole-array NumPy."""
+    ndim = material.ndim
+    s, b2 = [], 0.0
+    for axis in range(ndim):
+        h = spacing[axis]
+        speeds = []
+        for vel, dif in ((vel_a, dif_a), (vel_b, dif_b)):
+            grad = np.zeros(material.shape)
+            inner = [slice(None)] * ndim
+            inner[axis] = slice(1, -1)
+            up = np.take(dif[axis], np.arange(2, material.shape[axis]), axis=axis)
+            down = np.take(dif[axis], np.arange(0, material.shape[axis] - 2), axis=axis)
+            grad[tuple(inner)] = (up - down) / (2.0 * h)
+            speeds.append(np.abs(vel[axis] - grad))
+        s.append(np.maximum(*speeds) / h)
+        b2 = b2 + np.maximum(dif_a[axis], dif_b[axis]) / (h * h)
+    b2 = 2.0 * b2
+    a1 = sum(s)
+    a23 = sum(x ** (2.0 / 3.0) for x in s)
+    with np.errstate(divide="ignore"):
+        power = np.where(a23 > 0.0, a23**-1.5, np.inf)
+        denom = b2 + np.sqrt(b2 * b2 + 4.0 * a1 * a1)
+        quad = np.where(denom > 0.0, 2.0 / denom, np.inf)
+    return np.minimum(power, quad)[material > 0]
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_pair_limits_find_the_binding_cell(ndim):
+    """The pair limit is the smallest cell limit, whichever cell and law bind."""
+    pair = kernels.lw_max_dt_pair_3d if ndim == 3 else kernels.lw_max_dt_pair_2d
+    shape = (14, 12, 10)[:ndim]
+    for seed in range(12):
+        rng = np.random.default_rng(200 + seed)
+        vel_a, vel_b = rng.normal(size=(2, ndim, *shape)) * 10.0 ** rng.uniform(-2, 1)
+        dif_a, dif_b = rng.uniform(0.0, 1.0, size=(2, ndim, *shape)) * 10.0 ** rng.uniform(-4, 0)
+        # one fast cell somewhere, so that the minimum is not found in the first plane
+        fast = tuple(rng.integers(1, n - 1) for n in shape)
+        vel_b[(slice(None), *fast)] *= 1.0 + 3.0 * rng.uniform()
+        material = (rng.uniform(size=shape) > 0.2).astype(np.uint8)
+        spacing = tuple(rng.uniform(0.5, 1.5, ndim))
+        want = _pair_limit_by_hand(vel_a, dif_a, vel_b, dif_b, material, spacing).min()
+        got = pair(vel_a, dif_a, vel_b, dif_b, material, *spacing)
+        assert got == pytest.approx(want, rel=1e-13)
