@@ -340,29 +340,29 @@ def lw_apply_3d(c, out, coef, cls, rows):
                 o[k] = val if cl[k] == LW_INTERIOR else o[k]
 
 
-# The free-surface rule works on a list of surface cells made once per classification
-# (it depends on the material mask only): flat indices, and per cell a bit mask of the
-# interior cells of its box (bit (a + 1) 9 + (b + 1) 3 + (e + 1) for the offset (a, b, e)
-# in 3-D, (a + 1) 3 + (b + 1) in 2-D, i.e. in flat-index order). Scanning every material
-# row for the few surface cells, and testing 27 classes per cell, cost more than the
-# stencil itself. Flat arrays and strides let one kernel serve both dimensions.
+# The free-surface rule works on the list of surface cells (flat indices, made at each
+# classification) and, per cell, where its value comes from: the flat offset of the cell
+# one step inward, or the interior cells of its box as a bit mask (bit (a + 1) 9 +
+# (b + 1) 3 + (e + 1) for the offset (a, b, e) in 3-D, (a + 1) 3 + (b + 1) in 2-D, i.e.
+# in flat-index order). Those depend on the classes and the fill only, so the plan finds
+# them once per classification and fill; a step of the rule is then a gather. Scanning
+# every material row for the few surface cells and reading the fill around them each step
+# took about as long as the stencil. Flat arrays and strides let one kernel serve both
+# dimensions.
 
 
 @njit(**_JIT)
-def _surface_cells(cls, rows, n_mid, strides, ndim, starts, cells, masks, write):
-    """Count (``write`` False: into ``starts[line_block + 1]``) or list surface cells.
+def _surface_cells(cls, rows, n_mid, starts, cells, write):
+    """Count (``write`` False) or list (``write`` True) the surface cells, by planes.
 
     ``cls`` and ``rows`` are viewed as lines along the last axis, ``cls`` of shape
     (n_lines, n_last) and ``rows`` (n_lines, 2); line ``L`` is (i, j) = divmod(L, n_mid) in
-    3-D and i = L in 2-D (``n_mid`` = 1). Work is split by i; with ``write`` True, ``starts[i]``
-    is where plane i's cells go. Cells of the outermost layer are never listed.
+    3-D and i = L in 2-D (``n_mid`` = 1). Counting puts plane i's count in ``starts[i + 1]``;
+    listing writes plane i's flat indices from ``starts[i]`` on. Cells of the outermost
+    layer are never listed.
     """
     n_lines, n_last = cls.shape
     n_outer = n_lines // n_mid
-    flat_cls = cls.reshape(-1)
-    sx, sy, sz = strides[0], strides[1], strides[2]
-    e_lo = -1 if ndim == 3 else 0
-    e_hi = 2 if ndim == 3 else 1
     for i in prange(1, n_outer - 1):
         at = starts[i] if write else 0
         for line in range(i * n_mid, (i + 1) * n_mid):
@@ -372,24 +372,38 @@ def _surface_cells(cls, rows, n_mid, strides, ndim, starts, cells, masks, write)
                 if cls[line, k] != LW_SURFACE:
                     continue
                 if write:
-                    f = line * n_last + k
-                    mask = 0
-                    bit = 0
-                    for a in range(-1, 2):
-                        for b in range(-1, 2):
-                            for e in range(e_lo, e_hi):
-                                if flat_cls[f + a * sx + b * sy + e * sz] == LW_INTERIOR:
-                                    mask |= 1 << bit
-                                bit += 1
-                    cells[at] = f
-                    masks[at] = mask
+                    cells[at] = line * n_last + k
                 at += 1
         if not write:
             starts[i + 1] = at
 
 
+@njit(**_JIT_INLINE)
+def _box_mask(flat_cls, f, sx, sy, ndim):
+    """Bit mask of the interior cells in the box of flat cell ``f`` (bits in flat order).
+
+    The loops have constant bounds, so they are unrolled: with bounds known only at run
+    time the same loops took five times as long.
+    """
+    mask = 0
+    bit = 0
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            g = f + a * sx + b * sy
+            if ndim == 3:
+                for e in range(-1, 2):
+                    if flat_cls[g + e] == LW_INTERIOR:
+                        mask |= 1 << bit
+                    bit += 1
+            else:
+                if flat_cls[g] == LW_INTERIOR:
+                    mask |= 1 << bit
+                bit += 1
+    return mask
+
+
 def _list_surface_cells(cls, rows):
-    """Flat indices and box masks of the surface cells (see :func:`_surface_cells`)."""
+    """Flat indices of the surface cells and the grid's flat strides."""
     ndim = cls.ndim
     shape = cls.shape
     n_mid = shape[1] if ndim == 3 else 1
@@ -399,13 +413,11 @@ def _list_surface_cells(cls, rows):
     lines = cls.reshape(-1, shape[-1])
     row_lines = rows.reshape(-1, 2)
     starts = np.zeros(shape[0] + 1, np.int64)
-    empty = np.zeros(0, np.int64)
-    _surface_cells(lines, row_lines, n_mid, strides, ndim, starts, empty, empty, False)
+    _surface_cells(lines, row_lines, n_mid, starts, starts[:0], False)
     np.cumsum(starts, out=starts)
     cells = np.empty(starts[-1], np.int64)
-    masks = np.empty(starts[-1], np.int64)
-    _surface_cells(lines, row_lines, n_mid, strides, ndim, starts, cells, masks, True)
-    return cells, masks, strides
+    _surface_cells(lines, row_lines, n_mid, starts, cells, True)
+    return cells, strides
 
 
 @njit(**_JIT_INLINE)
@@ -417,10 +429,12 @@ def _normal_step(n, nmax):
 
 
 @njit(**_JIT)
-def _surface_steps(fill, cells, masks, strides, ndim, steps):
-    """Flat offset of each surface cell's source: the cell one step inward along the normal.
+def _surface_steps(fill, flat_cls, cells, strides, ndim, steps, masks):
+    """Where each surface cell takes its value from.
 
-    ``steps[s]`` is 0 where that cell is not interior (the box mean is used then).
+    ``steps[s]`` is the flat offset of the cell one step inward along the normal; where
+    that cell is not interior it is 0 and ``masks[s]`` marks the interior cells of the box
+    (see :func:`_box_mask`), whose mean is used.
     """
     sx, sy, sz = strides[0], strides[1], strides[2]
     for s in prange(cells.size):
@@ -434,13 +448,13 @@ def _surface_steps(fill, cells, masks, strides, ndim, steps):
         else:
             nmax = max(abs(nxv), abs(nyv))
             oz = 0
-        ox = _normal_step(nxv, nmax)
-        oy = _normal_step(nyv, nmax)
-        if ndim == 3:
-            bit = (ox + 1) * 9 + (oy + 1) * 3 + (oz + 1)
+        step = _normal_step(nxv, nmax) * sx + _normal_step(nyv, nmax) * sy + oz * sz
+        if flat_cls[f + step] == LW_INTERIOR:
+            steps[s] = step
+            masks[s] = 0
         else:
-            bit = (ox + 1) * 3 + (oy + 1)
-        steps[s] = ox * sx + oy * sy + oz * sz if (masks[s] >> bit) & 1 else 0
+            steps[s] = 0
+            masks[s] = _box_mask(flat_cls, f, sx, sy, ndim)
 
 
 @njit(**_JIT)
@@ -472,9 +486,10 @@ def _surface_rule(out, cells, masks, steps, strides, ndim):
 
 
 def _free_surface(out, cls, rows, fill):
-    cells, masks, strides = _list_surface_cells(cls, rows)
+    cells, strides = _list_surface_cells(cls, rows)
     steps = np.empty_like(cells)
-    _surface_steps(fill.reshape(-1), cells, masks, strides, cls.ndim, steps)
+    masks = np.empty_like(cells)
+    _surface_steps(fill.reshape(-1), cls.reshape(-1), cells, strides, cls.ndim, steps, masks)
     _surface_rule(out.reshape(-1), cells, masks, steps, strides, cls.ndim)
 
 
@@ -518,10 +533,9 @@ class LaxWendroffPlan:
         self._list_surface()
 
     def _list_surface(self):
-        self.surface_cells, self.surface_masks, self.strides = _list_surface_cells(
-            self.cls, self.rows
-        )
+        self.surface_cells, self.strides = _list_surface_cells(self.cls, self.rows)
         self.surface_steps = np.zeros_like(self.surface_cells)
+        self.surface_masks = np.zeros_like(self.surface_cells)
         self._steps_from = None  # the fill the steps were computed from
 
     def classify(self, material):
@@ -553,11 +567,12 @@ class LaxWendroffPlan:
         if self._steps_from is not fill:
             _surface_steps(
                 fill.reshape(-1),
+                self.cls.reshape(-1),
                 self.surface_cells,
-                self.surface_masks,
                 self.strides,
                 self.ndim,
                 self.surface_steps,
+                self.surface_masks,
             )
             self._steps_from = fill
         _surface_rule(
