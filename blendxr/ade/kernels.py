@@ -16,8 +16,10 @@ Two schemes are provided, each with a 2-D and a 3-D kernel:
 
 All kernels take plain C-contiguous float64 arrays of shape (nx, ny) or (nx, ny, nz) in axis
 order (x, y, z) and write into caller-provided output arrays; they never allocate inside
-their loops and run ``prange`` over the outermost axis only. The outermost layer of cells
-(index 0 and n - 1 on every axis) is never updated: it is copied unchanged.
+their loops and run ``prange`` over one outermost loop only (grid planes; for the
+finite-volume sweeps, the worker threads, each taking blocks of grid lines in turn). The
+outermost layer of cells (index 0 and n - 1 on every axis) is never updated: it is copied
+unchanged.
 """
 
 import numpy as np
@@ -249,7 +251,7 @@ def lw_coefficients_3d(vx, vy, vz, dxx, dyy, dzz, cls, dt, dx, dy, dz, coef):
 
 # The stencil loops index rows with unsigned integers: numba wraps negative signed indices
 # around (a select per access), which keeps LLVM from vectorising the loop; an unsigned
-# index needs no such check and the row loop becomes SIMD (about 2.5x faster). The class
+# index needs no such check and the row loop becomes SIMD (about twice as fast). The class
 # test is a select, not a branch, for the same reason: cells of a row's material range
 # that are not interior are computed too (from coefficients that may be stale) and their
 # old value is stored back unchanged.
