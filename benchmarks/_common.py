@@ -52,7 +52,7 @@ def _git(*args: str) -> str | None:
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return out.stdout.strip()
+    return out.stdout.rstrip()  # keep leading blanks: `status --porcelain` columns
 
 
 def load_average() -> list[float] | None:
@@ -235,7 +235,12 @@ def machine() -> dict:
     except AttributeError:
         affinity = None
     status = _git("status", "--porcelain", "--untracked-files=no")
-    modified = sorted(line[3:] for line in (status or "").splitlines() if line[3:])
+    # files of the project (not of the benchmarks) that differ from the commit
+    modified = sorted(
+        line[3:]
+        for line in (status or "").splitlines()
+        if line[3:] and not line[3:].startswith("benchmarks/")
+    )
     return {
         "cpu_model": cpu_model(),
         "cores": os.cpu_count(),
@@ -249,7 +254,7 @@ def machine() -> dict:
         "xarray": xarray.__version__,
         "blendxr": blendxr.__version__,
         "git_commit": _git("rev-parse", "--short", "HEAD"),
-        "git_tree_modified": bool(status) if status is not None else None,
+        "git_tree_modified": bool(modified) if status is not None else None,
         "git_modified_files": modified,
         "package_source_sha1": source_digest(),
         "platform": platform.platform(),

@@ -1,6 +1,6 @@
 """Run every benchmark in turn: throughput, work-precision, memory.
 
-Run: ``python benchmarks/run_all.py`` (about 10-20 minutes on 2 cores). Each script writes
+Run: ``python benchmarks/run_all.py`` (3-15 minutes on 2 cores). Each script writes
 its own results under ``benchmarks/results/``; this one stops at nothing and reports each
 script's exit status at the end (status 1 if any failed).
 """

@@ -27,8 +27,8 @@ bound it implies for an update that only reads and writes c (16 bytes per cell u
 For scale, a plain constant-coefficient 19-point stencil (numba prange, 100^3) is timed
 on the same machine.
 
-Run: ``python benchmarks/throughput.py`` (about 3-6 minutes on 2 cores). Writes
-``benchmarks/results/throughput.json``.
+Run: ``python benchmarks/throughput.py`` (1-8 minutes on 2 cores, the more the busier
+the machine). Writes ``benchmarks/results/throughput.json``.
 """
 
 from __future__ import annotations
@@ -159,7 +159,7 @@ def profile_split(flow, scheme: str, revolutions: float, material: float) -> dic
         profiler.disable()
         return mixed, pstats.Stats(profiler).stats
 
-    timed = best_of(once, min_runs=1, max_runs=3, budget_s=BUDGET_S)
+    timed = best_of(once, min_runs=1, max_runs=MAX_REPEATS, budget_s=BUDGET_S, quiet_wait_s=60)
     (mixed, stats), wall = timed["result"], timed["wall_s"]
     cum = {
         name: _stat(stats, name, "ade/stepper.py", 3)
@@ -423,6 +423,7 @@ def main() -> None:
         rows.append(
             [r["case"], r["scheme"], p["wall_s"], p["steps"]]
             + [f"{100 * p['share'][k]:.0f} %" for k in p["seconds"]]
+            + [_percent(p["contention"]["other_cpu_share"])]
         )
     echo(
         table(
@@ -437,9 +438,10 @@ def main() -> None:
                 "stability limits",
                 "records/checks",
                 "other (set-up, phase prep)",
+                "others' CPU",
             ],
             rows,
-            align="llrrrrrrrr",
+            align="llrrrrrrrrr",
         )
     )
     echo()

@@ -12,13 +12,16 @@ Cases, each on four grids, one revolution:
   revolution the exact answer is the initial state. Errors over the whole box. Grids:
   32, 64, 128, 256 cells.
 
+A time-step study reruns one grid per case at 0.9, 0.3 and 0.1 of the stable dt
+(``safety``), to tell time error from space error.
+
 Per run: L1 error (sum of |c - exact| times the cell volume over the error window, as in
 tests/test_mix.py), max error, observed orders from successive grids
 (log(e1 / e2) / log(h1 / h2)), wall time of the ``mix`` call (after a warm-up that
 compiles the kernels; fastest of repeated runs, see ``_common.best_of``), steps and the
 species mass drift (``mass_a_relative_drift``).
 
-Run: ``python benchmarks/work_precision.py`` (about 3-8 minutes on 2 cores). Writes
+Run: ``python benchmarks/work_precision.py`` (1-4 minutes on 2 cores). Writes
 ``benchmarks/results/work_precision.{json,md,png}``.
 """
 
@@ -58,6 +61,8 @@ RADIUS, RPM_SBR, DIFFUSION = 0.1, 10.0, 2.0e-6
 SBR_CENTRE, SBR_SIGMA2 = (0.045, 0.0, 0.0), 0.018**2
 SWIRL_CENTRE, SWIRL_SIGMA2 = (0.5, 0.3), 0.1**2
 GRIDS = {"sbr-3d": (16, 24, 32, 48), "swirl-2d": (32, 64, 128, 256)}
+DT_STUDY_CELLS = {"sbr-3d": 32, "swirl-2d": 128}  # grid of the time-step study per case
+SAFETIES = (0.9, 0.3, 0.1)  # fractions of the stable dt in the time-step study
 REPEATS = 3  # timed runs per grid (the answers are identical; the fastest is kept) ...
 BUDGET_S = 40.0  # ... while their total stays below this (long runs: fewer)
 MAX_REPEATS = 5  # more runs, within the budget, while other work stalled every run so far
@@ -158,6 +163,46 @@ def run_one(flow, scheme, cells, kwargs, exact_and_window) -> dict:
         "mass_a_relative_drift": float(mixed.attrs["mass_a_relative_drift"]),
         "diffusion_substeps_max": int(mixed.attrs["diffusion_substeps_max"]),
     }
+
+
+def dt_study(flow, scheme, cells, kwargs, exact_and_window) -> list[dict]:
+    """The same grid at several fractions of the stable dt: separates time from space error.
+
+    If the L1 error falls in proportion to dt at a fixed grid, the time error dominates
+    and, since the stable dt shrinks with h, the observed order in h is that of time.
+    """
+    rows = []
+    for safety in SAFETIES:
+        mixed = bx.mix(
+            flow,
+            scheme=scheme,
+            cells=cells,
+            revolutions=1.0,
+            output_every=0.5,
+            snapshots=[1.0],
+            safety=safety,
+            progress=False,
+            **kwargs,
+        )
+        values, points = final_field(mixed)
+        exact, window = exact_and_window(points)
+        l1, emax, _ = errors(values, exact, mixed.attrs["grid_spacing"], window)
+        rows.append(
+            {
+                "cells": cells,
+                "safety": safety,
+                "steps": int(mixed.attrs["steps"]),
+                "dt_max_s": float(mixed.attrs["dt_max"]),
+                "l1_error": l1,
+                "max_error": emax,
+            }
+        )
+    for row in rows:
+        row["l1_relative_to_first"] = row["l1_error"] / rows[0]["l1_error"]
+        # mean dt over the revolution (dt_max is capped by the phase interval where the
+        # flow is slow, so it does not follow the safety factor)
+        row["mean_dt_relative_to_first"] = rows[0]["steps"] / row["steps"]
+    return rows
 
 
 def observed_orders(rows, key):
@@ -287,11 +332,35 @@ def main() -> None:
             max_orders = observed_orders(rows, "max_error")
             for r, p1, pm in zip(rows, l1_orders, max_orders, strict=True):
                 r["order_l1"], r["order_max"] = p1, pm
-            results.append({"case": case, "scheme": scheme, "runs": rows})
+            study = dt_study(flow, scheme, DT_STUDY_CELLS[case], kwargs, exact_and_window)
+            results.append({"case": case, "scheme": scheme, "runs": rows, "dt_study": study})
 
     text = markdown(results, info)
     echo()
     echo(text)
+    study_rows = [
+        [
+            entry["case"],
+            entry["scheme"],
+            r["cells"],
+            r["safety"],
+            r["steps"],
+            f"{r['l1_error']:.3e}",
+            f"{r['mean_dt_relative_to_first']:.3f}",
+            f"{r['l1_relative_to_first']:.3f}",
+        ]
+        for entry in results
+        for r in entry["dt_study"]
+    ]
+    study_text = table(
+        ["case", "scheme", "cells", "safety", "steps", "L1 error", "mean dt ratio", "L1 ratio"],
+        study_rows,
+        align="llrrrrrr",
+    )
+    echo()
+    echo("Time-step study (one grid per case, dt = safety x stable limit):")
+    echo()
+    echo(study_text)
     md = (
         "<!-- written by benchmarks/work_precision.py -->\n"
         f"Machine: {machine_line(info)}.\n\n"
@@ -300,7 +369,10 @@ def main() -> None:
         "k1 = 0 (exact: the initial state). Orders from successive grids, "
         "log(e1/e2)/log(h1/h2); mass drift = `mass_a_relative_drift`; others' CPU = CPU time "
         "other processes used during the timed run, as a share of the machine (high values "
-        "mean a pessimistic wall time).\n\n" + text + "\n"
+        "mean a pessimistic wall time).\n\n" + text + "\n\n"
+        "Time-step study: the same grid run at several fractions (`safety`) of the stable dt; "
+        "ratios are to the run at safety 0.9 (mean dt = period / steps). An L1 error falling "
+        "in proportion to dt means the time error dominates at that grid.\n\n" + study_text + "\n"
     )
     write_atomic(RESULTS / "work_precision.md", md)
     plot(results, RESULTS / "work_precision.png")
@@ -327,6 +399,7 @@ def main() -> None:
                 "exact": "initial state",
             },
             "l1_error": "sum |c - exact| x cell volume over the window",
+            "dt_study": {"cells": DT_STUDY_CELLS, "safety": SAFETIES},
             "wall_s": f"wall time of the mix call after warm-up, fastest of {REPEATS} runs "
             f"(fewer if their total would exceed {BUDGET_S} s; up to {MAX_REPEATS} while "
             "other work on the machine slowed every run so far)",
