@@ -31,6 +31,7 @@ __all__ = [
     "LW_SURFACE",
     "LaxWendroffPlan",
     "fv_max_dt_pair",
+    "fv_transport_velocity",
     "lerp_into",
     "lw_max_dt_pair_2d",
     "lw_max_dt_pair_3d",
@@ -211,9 +212,12 @@ def lw_classify_3d(material, cls, rows, scratch=None):
 def lw_coefficients_2d(vx, vy, dxx, dyy, cls, dt, dx, dy, coef):
     """Per-cell coefficients of eq. (6) for interior cells (2-D).
 
-    ``coef[0:2]`` = nu_k = (v_k - dD_kk/dx_k) dt / h_k (eq. 7-8 as they should read: the
-    effective velocity of eq. 4, gradient by central differences, eq. 22-23) and
-    ``coef[2:4]`` = nu_k**2 / 2 + mu_k with mu_k = D_kk dt / h_k**2 (eq. 10-11).
+    ``coef[0:2]`` = nu_k = (w_k - dt/2 (w . grad) v_k) dt / h_k with the effective velocity
+    w_k = v_k - dD_kk/dx_k of eq. (4) (eq. 7-8 as they should read, gradients by central
+    differences, eq. 22-23), and ``coef[2:4]`` = (w_k dt / h_k)**2 / 2 + mu_k with
+    mu_k = D_kk dt / h_k**2 (eq. 10-11). The ``(w . grad) v`` term is the part of
+    c_tt = w.grad(w.grad c) that eq. (6) omits when the velocity varies in space; without
+    it the scheme is only first-order in time on such flows (docs/numerics.md).
     Other cells are left as they are (never read).
     """
     nx, ny = cls.shape
@@ -221,12 +225,30 @@ def lw_coefficients_2d(vx, vy, dxx, dyy, cls, dt, dx, dy, coef):
         for j in range(1, ny - 1):
             if cls[i, j] != LW_INTERIOR:
                 continue
-            nux = (vx[i, j] - (dxx[i + 1, j] - dxx[i - 1, j]) / (2.0 * dx)) * dt / dx
-            nuy = (vy[i, j] - (dyy[i, j + 1] - dyy[i, j - 1]) / (2.0 * dy)) * dt / dy
-            coef[0, i, j] = nux
-            coef[1, i, j] = nuy
+            wx = vx[i, j] - (dxx[i + 1, j] - dxx[i - 1, j]) / (2.0 * dx)
+            wy = vy[i, j] - (dyy[i, j + 1] - dyy[i, j - 1]) / (2.0 * dy)
+            adv_x = wx * (vx[i + 1, j] - vx[i - 1, j]) / (2.0 * dx) + wy * (
+                vx[i, j + 1] - vx[i, j - 1]
+            ) / (2.0 * dy)
+            adv_y = wx * (vy[i + 1, j] - vy[i - 1, j]) / (2.0 * dx) + wy * (
+                vy[i, j + 1] - vy[i, j - 1]
+            ) / (2.0 * dy)
+            nux = wx * dt / dx
+            nuy = wy * dt / dy
+            coef[0, i, j] = (wx - 0.5 * dt * adv_x) * dt / dx
+            coef[1, i, j] = (wy - 0.5 * dt * adv_y) * dt / dy
             coef[2, i, j] = 0.5 * nux * nux + dxx[i, j] * dt / (dx * dx)
             coef[3, i, j] = 0.5 * nuy * nuy + dyy[i, j] * dt / (dy * dy)
+
+
+@njit(**_JIT_INLINE)
+def _advective_3d(v, wx, wy, wz, i, j, k, dx, dy, dz):
+    """(w . grad) v at cell (i, j, k), central differences."""
+    return (
+        wx * (v[i + 1, j, k] - v[i - 1, j, k]) / (2.0 * dx)
+        + wy * (v[i, j + 1, k] - v[i, j - 1, k]) / (2.0 * dy)
+        + wz * (v[i, j, k + 1] - v[i, j, k - 1]) / (2.0 * dz)
+    )
 
 
 @njit(**_JIT)
@@ -238,12 +260,18 @@ def lw_coefficients_3d(vx, vy, vz, dxx, dyy, dzz, cls, dt, dx, dy, dz, coef):
             for k in range(1, nz - 1):
                 if cls[i, j, k] != LW_INTERIOR:
                     continue
-                nux = (vx[i, j, k] - (dxx[i + 1, j, k] - dxx[i - 1, j, k]) / (2.0 * dx)) * dt / dx
-                nuy = (vy[i, j, k] - (dyy[i, j + 1, k] - dyy[i, j - 1, k]) / (2.0 * dy)) * dt / dy
-                nuz = (vz[i, j, k] - (dzz[i, j, k + 1] - dzz[i, j, k - 1]) / (2.0 * dz)) * dt / dz
-                coef[0, i, j, k] = nux
-                coef[1, i, j, k] = nuy
-                coef[2, i, j, k] = nuz
+                wx = vx[i, j, k] - (dxx[i + 1, j, k] - dxx[i - 1, j, k]) / (2.0 * dx)
+                wy = vy[i, j, k] - (dyy[i, j + 1, k] - dyy[i, j - 1, k]) / (2.0 * dy)
+                wz = vz[i, j, k] - (dzz[i, j, k + 1] - dzz[i, j, k - 1]) / (2.0 * dz)
+                adv_x = _advective_3d(vx, wx, wy, wz, i, j, k, dx, dy, dz)
+                adv_y = _advective_3d(vy, wx, wy, wz, i, j, k, dx, dy, dz)
+                adv_z = _advective_3d(vz, wx, wy, wz, i, j, k, dx, dy, dz)
+                nux = wx * dt / dx
+                nuy = wy * dt / dy
+                nuz = wz * dt / dz
+                coef[0, i, j, k] = (wx - 0.5 * dt * adv_x) * dt / dx
+                coef[1, i, j, k] = (wy - 0.5 * dt * adv_y) * dt / dy
+                coef[2, i, j, k] = (wz - 0.5 * dt * adv_z) * dt / dz
                 coef[3, i, j, k] = 0.5 * nux * nux + dxx[i, j, k] * dt / (dx * dx)
                 coef[4, i, j, k] = 0.5 * nuy * nuy + dyy[i, j, k] * dt / (dy * dy)
                 coef[5, i, j, k] = 0.5 * nuz * nuz + dzz[i, j, k] * dt / (dz * dz)
@@ -1242,6 +1270,49 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
     if reverse:
         sweeps.reverse()
     _fv_step((_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub)
+
+
+@njit(**_JIT)
+def _transport_velocity(v, out, dt, h, cap):
+    n0, n, n2 = v.shape
+    for j in prange(n):
+        jm = max(j - 1, 0)
+        jp = min(j + 1, n - 1)
+        span = (jp - jm) * h
+        for a in range(n0):
+            for b in range(n2):
+                u = v[a, j, b]
+                factor = 1.0 - 0.5 * dt * (v[a, jp, b] - v[a, jm, b]) / span
+                out[a, j, b] = u * min(max(factor, 0.0), cap)
+
+
+def fv_transport_velocity(v, out, axis, dt, h, cap):
+    """Velocity component ``v`` advanced half a step along its own axis, for the sweeps.
+
+    ``out = v (1 - dt/2 dv/dx_axis)``, central differences (one-sided at the array ends),
+    the factor clipped to ``[0, cap]``. In the 1-D sweep m_t + (v m)_x = 0 the
+    Lax-Wendroff flux is ``v m - dt/2 v (v m)_x``; the antidiffusive flux of the sweep
+    supplies ``-dt/2 v^2 m_x`` and the face velocity ``out`` supplies the
+    ``-dt/2 v v_x m`` term that a constant-velocity flux lacks: without it the scheme is
+    only first-order in time where the velocity varies along the sweep.
+
+    Parameters
+    ----------
+    v, out : ndarray
+        One velocity component (m/s) and the array receiving the transport velocity, same
+        shape, C-contiguous.
+    axis : int
+        The component's axis.
+    dt, h : float
+        Time step (s) and spacing along ``axis`` (m).
+    cap : float
+        Largest factor allowed (>= 1 keeps the face Courant numbers within the limit the
+        step was chosen for: pass limit / dt).
+    """
+    shape = v.shape
+    view = (int(np.prod(shape[:axis])), shape[axis], int(np.prod(shape[axis + 1 :])))
+    _transport_velocity(v.reshape(view), out.reshape(view), dt, h, cap)
+    return out
 
 
 @njit(**_JIT)

@@ -17,6 +17,7 @@ __all__ = [
     "concentration",
     "fv_step_2d",
     "fv_step_3d",
+    "fv_transport_velocity",
     "lw_free_surface_2d",
     "lw_free_surface_3d",
     "lw_step_2d",
@@ -73,19 +74,31 @@ def _interior_material(material):
 
 def _lw_step(c, out, vels, difs, material, dt, spacing, clip):
     ndim = c.ndim
-    nu = []
+    w = []  # effective velocity of eq. (4)
+    for axis in range(ndim):
+        h = spacing[axis]
+        w.append(
+            vels[axis] - (_shift(difs[axis], axis, 1) - _shift(difs[axis], axis, -1)) / (2 * h)
+        )
+
+    def grad(a, axis):
+        return (_shift(a, axis, 1) - _shift(a, axis, -1)) / (2.0 * spacing[axis])
+
+    nu = []  # the first-order (and cross) Courant numbers, with the (w . grad) v term
+    nu2 = []  # the second-order ones, w dt / h
     mu = []
     d0 = []
     for axis in range(ndim):
         h = spacing[axis]
-        ddif = (_shift(difs[axis], axis, 1) - _shift(difs[axis], axis, -1)) / (2.0 * h)
-        nu.append((vels[axis] - ddif) * dt / h)
+        advective = sum(w[b] * grad(vels[axis], b) for b in range(ndim))
+        nu.append((w[axis] - 0.5 * dt * advective) * dt / h)
+        nu2.append(w[axis] * dt / h)
         mu.append(difs[axis] * dt / (h * h))
         d0.append(0.5 * (_shift(c, axis, 1) - _shift(c, axis, -1)))
     new = c.copy()
     for axis in range(ndim):
         d2 = _shift(c, axis, 1) - 2.0 * c + _shift(c, axis, -1)
-        new = new - (nu[axis] * d0[axis] - (0.5 * nu[axis] ** 2 + mu[axis]) * d2)
+        new = new - (nu[axis] * d0[axis] - (0.5 * nu2[axis] ** 2 + mu[axis]) * d2)
     # cross terms nu_x nu_y, nu_y nu_z, nu_z nu_x
     pairs = [(0, 1)] if ndim == 2 else [(0, 1), (1, 2), (2, 0)]
     for a, b in pairs:
@@ -294,3 +307,9 @@ def concentration(m, q, out, m_min):
     with np.errstate(divide="ignore", invalid="ignore"):
         out[...] = np.where(m > m_min, q / m, np.nan)
     return out
+
+
+def fv_transport_velocity(v, axis, dt, h, cap):
+    """NumPy twin of :func:`blendxr.ade.kernels.fv_transport_velocity`."""
+    grad = np.gradient(v, h, axis=axis)  # central inside, one-sided at the ends
+    return v * np.clip(1.0 - 0.5 * dt * grad, 0.0, cap)

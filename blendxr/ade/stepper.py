@@ -365,12 +365,18 @@ class _Run:
         )
         self.vessel = self.reader.vessel.astype(np.uint8)
         self.support = self.vessel.copy()
+        # finite volume: the velocities advanced half a step along their own axes
+        self.transport = (
+            tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
+            if settings.scheme == "finite-volume"
+            else ()
+        )
         self.state = _State(s.scheme, self.grid.shape)
         self.fields = _Fields(self.ndim, self.grid.shape, self.with_diffusion, with_fill=True)
         self.lw_plan = (
             kernels.LaxWendroffPlan(self.grid.shape) if s.scheme == "lax-wendroff" else None
         )
-        self._lw_dt = None
+        self._prepared_dt = None
         self._active = None
         self._limits: dict = {}
         self.t = 0.0
@@ -529,7 +535,7 @@ class _Run:
             first, last = (block * n) // blocks, ((block + 1) * n) // blocks
             t_mid = t0 + 0.5 * (first + last) * dt
             w = 0.0 if steady else min(max(self._phase_position(t_mid) - k, 0.0), 1.0)
-            self._refresh(a, b, w, dt)
+            self._refresh(a, b, w, dt, limit)
             for _ in range(last - first):
                 self._step(dt, n_sub)
                 self.t += dt
@@ -538,22 +544,28 @@ class _Run:
                     self.check()
         self.t = t_end
 
-    def _refresh(self, a, b, w: float, dt: float) -> None:
+    def _refresh(self, a, b, w: float, dt: float, limit: float) -> None:
         """Blend the flow fields at weight w and prepare the scheme's per-cell data."""
         f = self.fields
         changed = f.blend(a, b, w)
         if self.settings.scheme != "lax-wendroff":
             if changed:
                 f.support(self.vessel, self.support)
+            if changed or dt != self._prepared_dt:
+                # face Courant numbers may grow by limit/dt at most: still within the limit
+                cap = limit / dt if math.isfinite(limit) else 1.0
+                for axis, (v, out) in enumerate(zip(f.velocities, self.transport, strict=True)):
+                    kernels.fv_transport_velocity(v, out, axis, dt, self.grid.spacing[axis], cap)
+                self._prepared_dt = dt
             return
-        if changed or dt != self._lw_dt:
+        if changed or dt != self._prepared_dt:
             plan, st = self.lw_plan, self.state
             plan.classify(f.material)
             diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
             plan.coefficients(f.velocities, diffs, dt, self.grid.spacing)
             np.copyto(st.c_next, st.c)  # cells the stencil skips stay equal in both buffers
             self._active = plan.interior_cells()
-            self._lw_dt = dt
+            self._prepared_dt = dt
 
     def _step(self, dt: float, n_sub: int) -> None:
         st, f, h = self.state, self.fields, self.grid.spacing
@@ -566,7 +578,7 @@ class _Run:
                 st.m_next,
                 st.q_next,
                 st.work,
-                *f.velocities,
+                *self.transport,
                 *diffs,
                 self.support,
                 dt,
