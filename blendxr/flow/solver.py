@@ -1,0 +1,865 @@
+"""The built-in Mohr-Coulomb flow solver: fill, settle, rotate, phase-average (DESIGN §4).
+
+A material point method (MLS-MPM/APIC, quadratic B-splines) in the vessel frame, where
+the walls stand still and gravity turns backwards once per revolution:
+
+1. **Fill**: particles on a lattice (``blendxr.vessels.seed_particles``), at rest, no stress.
+2. **Settle** (``solver.settle_time``): gravity ramped from zero over the first 60 % of the
+   settling time with grid damping, then held for the rest undamped, so that the bed
+   comes to rest under a Mohr-Coulomb stress state (an elastic K0 of this material
+   violates the yield criterion, DESIGN §7).
+3. **Turn** at ``operation.rpm`` for ``solver.revolutions`` revolutions: gravity rotates
+   backwards in the vessel frame and the centrifugal and Coriolis accelerations act.
+4. **Average** particle velocity and volume into ``flow.phases`` phase bins of the last
+   revolution, on the output grid of cell ``flow.cell``: the flow dataset of DESIGN §3.
+   Drums are axisymmetric: their flow is averaged in the lab frame into one phase.
+   The previous revolution is averaged too, for the periodicity of eq. (30).
+
+Non-rotating scenes (``rpm = 0``) run for ``operation.duration`` and average over the
+final ``solver.average_window``.
+
+Stability: explicit, ``dt = courant * cell / (c_p + |v|max)`` with the P-wave speed
+``c_p = sqrt((K + 4G/3) / rho)`` (CFL for elastic waves); ``courant <= 1`` is required
+and the default 0.4 leaves room for the quadratic B-spline's wider stencil. A run whose
+particles reach a speed far beyond any the scene can produce, or a non-finite value,
+stops with the step, the time and the place, after keeping its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba
+import numpy as np
+import xarray as xr
+
+from .. import __version__
+from ..scene import Scene, SceneError, load_scene
+from ..schema import flow_dataset
+from ..vessels import Drum, vessel_from_scene
+from . import kernels as mpm
+from . import mohr_coulomb as mc
+from .walls import project_into_vessel
+
+__all__ = ["FlowBlowUpError", "FlowSimulation", "Material", "solve_flow"]
+
+SORT_EVERY = 20  # steps between re-sorting particles by cell (keeps P2G chunks coherent)
+SPEED_CHECK_EVERY = 10  # steps between updates of |v|max for dt (cheap; v changes slowly)
+RAMP_SHARE = 0.6  # share of the settling time over which gravity ramps up (damped)
+GRID_PADDING = 3  # empty nodes around the vessel's bounding box (B-spline support + margin)
+DEFAULT_PHASES = 36
+WALL_BAND = 1.0  # nodes closer to the wall than this many cells get the wall law
+WALL_SKIN = 1e-3  # projected particles land this many cells inside the wall
+
+
+class FlowBlowUpError(RuntimeError):
+    """The flow solver went unstable; the message gives the step, time and place."""
+
+
+@dataclass(frozen=True)
+class Material:
+    """Material constants of the Mohr-Coulomb model (paper Table 1 by default).
+
+    Parameters
+    ----------
+    density : float
+        kg/m³.
+    youngs_modulus : float
+        Pa, before stiffness scaling.
+    poisson_ratio : float
+        Dimensionless, in [0, 0.5).
+    friction_angle_deg, dilation_angle_deg : float
+        Degrees.
+    cohesion : float
+        Pa.
+    wall_friction : float
+        Coulomb coefficient between material and walls.
+    stiffness_scaling : float
+        E is divided by this factor (>= 1) for a larger stable dt.
+    tension_cutoff : bool
+        Cap the largest principal stress at c cot(phi).
+    """
+
+    density: float = 1500.0
+    youngs_modulus: float = 3.65e6
+    poisson_ratio: float = 0.065
+    friction_angle_deg: float = 27.1
+    cohesion: float = 87.0
+    dilation_angle_deg: float = 0.1
+    wall_friction: float = 0.324
+    stiffness_scaling: float = 1.0
+    tension_cutoff: bool = True
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> Material:
+        m, s = scene["material"], scene["solver"]
+        return cls(
+            density=m["density"],
+            youngs_modulus=m["youngs_modulus"],
+            poisson_ratio=m["poisson_ratio"],
+            friction_angle_deg=m["friction_angle_deg"],
+            cohesion=m["cohesion"],
+            dilation_angle_deg=m["dilation_angle_deg"],
+            wall_friction=m["wall_friction"],
+            stiffness_scaling=s["stiffness_scaling"],
+            tension_cutoff=s["tension_cutoff"],
+        )
+
+    @property
+    def effective_modulus(self) -> float:
+        return self.youngs_modulus / self.stiffness_scaling
+
+    @property
+    def bulk_shear(self) -> tuple[float, float]:
+        k, g, _ = mc.elastic_constants(self.effective_modulus, self.poisson_ratio)
+        return float(k), float(g)
+
+    @property
+    def p_wave_speed(self) -> float:
+        return float(mc.p_wave_speed(self.effective_modulus, self.poisson_ratio, self.density))
+
+    def return_arguments(self) -> tuple:
+        """(K, G, sin phi, cos phi, c, sin psi, tension cutoff) for the stress update."""
+        k, g = self.bulk_shear
+        phi = math.radians(self.friction_angle_deg)
+        psi = math.radians(self.dilation_angle_deg)
+        if self.tension_cutoff and phi > 0:
+            cutoff = self.cohesion / math.tan(phi)
+        else:
+            cutoff = 0.0
+        return (k, g, math.sin(phi), math.cos(phi), self.cohesion, math.sin(psi), cutoff)
+
+
+# ----------------------------------------------------------------------------- state
+
+
+class Particles:
+    """Particle arrays of one run (structure of arrays, float64)."""
+
+    FIELDS = ("x", "v", "C", "L", "stress", "mass", "vol0", "vol", "J", "colour")
+
+    def __init__(self, positions: np.ndarray, volume: float, density: float):
+        n, d = positions.shape
+        self.ndim = d
+        self.x = np.ascontiguousarray(positions, dtype=float)
+        self.v = np.zeros((n, d))
+        self.C = np.zeros((n, d, d))
+        self.L = np.zeros((n, 3, 3))
+        self.stress = np.zeros((n, 3, 3))
+        self.vol0 = np.full(n, float(volume))
+        self.vol = self.vol0.copy()
+        self.J = np.ones(n)
+        self.mass = self.vol0 * density
+        self.colour = np.zeros(n)
+        self.codes = np.zeros(n, np.int8)
+        self.active = np.ones(n, np.uint8)
+
+    @property
+    def count(self) -> int:
+        return self.x.shape[0]
+
+    def permute(self, order: np.ndarray) -> None:
+        for name in self.FIELDS:
+            setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in self.FIELDS}
+
+    def load(self, arrays: dict) -> None:
+        for name in self.FIELDS:
+            setattr(self, name, np.ascontiguousarray(arrays[name]))
+        n = self.x.shape[0]
+        self.codes = np.zeros(n, np.int8)
+        self.active = np.ones(n, np.uint8)
+
+
+class BackgroundGrid:
+    """Nodes at ``origin + i h`` covering the vessel, with wall distances precomputed.
+
+    The vessel does not move in its own frame, so the signed distance and the outward
+    normal at every node are computed once.
+    """
+
+    def __init__(self, vessel, h: float, threads: int):
+        lower, upper = (np.asarray(b, float) for b in vessel.bounds)
+        self.h = float(h)
+        self.ndim = vessel.ndim
+        self.origin = (np.floor(lower / h) - GRID_PADDING) * h
+        top = (np.ceil(upper / h) + GRID_PADDING) * h
+        self.shape = tuple(int(round(n)) + 1 for n in (top - self.origin) / h)
+        axes = [self.origin[a] + h * np.arange(n) for a, n in enumerate(self.shape)]
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+        self.node_sdf = np.ascontiguousarray(vessel.sdf(nodes))
+        self.node_normal = np.ascontiguousarray(vessel.normal(nodes))
+        self.inside = np.full(self.shape, -1.0)  # "every node inside": G2P never projects
+        self.scratch = np.zeros((threads, 4))
+        self.threads = threads
+        self.thread_m = np.zeros((threads, *self.shape))
+        self.thread_p = np.zeros((threads, *self.shape, self.ndim))
+        self.mass = np.zeros(self.shape)
+        self.momentum = np.zeros((*self.shape, self.ndim))
+        self.velocity = np.zeros((*self.shape, self.ndim))
+
+    @property
+    def nbytes(self) -> int:
+        return sum(
+            a.nbytes
+            for a in (self.thread_m, self.thread_p, self.mass, self.momentum, self.velocity)
+        )
+
+
+def _rotation(theta: float, ndim: int) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    r = np.eye(ndim)
+    r[0, 0], r[0, 1], r[1, 0], r[1, 1] = c, -s, s, c
+    return r
+
+
+# ----------------------------------------------------------------------------- settings
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    cell: float
+    output_cell: float
+    per_cell: int
+    courant: float
+    rpm: float
+    gravity: float
+    settle_time: float
+    damping: float
+    revolutions: int
+    phases: int
+    duration: float | None
+    average_window: float | None
+    checkpoint_every: float
+    seed: int
+
+    @classmethod
+    def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
+        s, op, fl = scene["solver"], scene["operation"], scene["flow"]
+        size = float(np.min(np.asarray(vessel.bounds[1]) - np.asarray(vessel.bounds[0])))
+        output_cell = fl.get("cell")
+        cell = s.get("cell", output_cell)
+        if cell is None:
+            cell = output_cell = size / 24.0
+        output_cell = cell if output_cell is None else output_cell
+        faults = []
+        for key, value in (("solver.cell", cell), ("flow.cell", output_cell)):
+            if value > 0.5 * size:
+                faults.append(
+                    f"{key} = {value!r} is out of range; allowed: <= half the vessel's "
+                    f"smallest extent, {0.5 * size:.4g} m"
+                )
+        rpm = float(op["rpm"])
+        duration = op.get("duration")
+        if rpm == 0 and duration is None:
+            faults.append("operation.duration: needed when operation.rpm = 0")
+        if faults:
+            raise SceneError(faults)
+        phases = int(fl.get("phases", DEFAULT_PHASES))
+        if isinstance(vessel, Drum) or rpm == 0:
+            phases = 1
+        return cls(
+            cell=float(cell),
+            output_cell=float(output_cell),
+            per_cell=int(s["particles_per_cell"]),
+            courant=float(s["courant"]),
+            rpm=rpm,
+            gravity=float(op["gravity"]),
+            settle_time=float(s["settle_time"]),
+            damping=float(s["damping"]),
+            revolutions=int(s["revolutions"]),
+            phases=phases,
+            duration=None if duration is None else float(duration),
+            average_window=s.get("average_window"),
+            checkpoint_every=float(s["checkpoint_every"]),
+            seed=int(s["seed"]),
+        )
+
+
+# ----------------------------------------------------------------------------- phases
+
+
+class PhaseAverager:
+    """Accumulates particle volume and volume-weighted velocity in phase bins.
+
+    Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
+    of a bin is its mean particle volume per cell over its samples, the velocity its
+    volume-weighted mean.
+    """
+
+    def __init__(self, lower: np.ndarray, shape: tuple, h: float, phases: int):
+        self.origin = np.asarray(lower, float)
+        self.shape = tuple(shape)
+        self.h = float(h)
+        self.phases = int(phases)
+        self.ndim = len(shape)
+        self.vol = np.zeros((phases, *shape))
+        self.mom = np.zeros((phases, *shape, self.ndim))
+        self.samples = np.zeros(phases, np.int64)
+
+    def bin_of(self, phase: float) -> int:
+        return int(math.floor(phase * self.phases + 0.5)) % self.phases
+
+    def add(self, k: int, x: np.ndarray, v: np.ndarray, vol: np.ndarray) -> None:
+        deposit = mpm.deposit_3d if self.ndim == 3 else mpm.deposit_2d
+        deposit(x, v, vol, self.origin, 1.0 / self.h, self.vol[k], self.mom[k])
+        self.samples[k] += 1
+
+    def fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(fill, velocity (n, ..., d), raw fill before clipping) of every bin."""
+        if np.any(self.samples == 0):
+            empty = np.flatnonzero(self.samples == 0).tolist()
+            raise RuntimeError(f"phase bins {empty} received no samples; use fewer phases")
+        cell_volume = self.h**self.ndim
+        shape = (-1,) + (1,) * self.ndim
+        raw = self.vol / (cell_volume * self.samples.reshape(shape))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vel = np.where(self.vol[..., None] > 0, self.mom / self.vol[..., None], 0.0)
+        return np.clip(raw, 0.0, 1.0), vel, raw
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        return {f"{prefix}_vol": self.vol, f"{prefix}_mom": self.mom, f"{prefix}_n": self.samples}
+
+    def load(self, prefix: str, arrays: dict) -> None:
+        self.vol[...] = arrays[f"{prefix}_vol"]
+        self.mom[...] = arrays[f"{prefix}_mom"]
+        self.samples[...] = arrays[f"{prefix}_n"]
+
+
+def periodicity(v_prev: np.ndarray, v_last: np.ndarray, fill_prev, fill_last, floor=0.05):
+    """Eq. (30): mean relative change of each velocity component between revolutions.
+
+    ``mean_n |(v_n^j - v_n^{j+1}) / v_n^j|`` over the cells holding material in both
+    revolutions (fill > 0.5), per component. Eq. (30) divides by the local velocity, which
+    is unbounded where a component passes through zero, so cells where ``|v^j|`` is below
+    ``floor`` times that component's largest magnitude are left out (stated in the
+    output). Also returned: the norm form ``sum |dv| / sum |v|`` over the same cells.
+    """
+    mask = (fill_prev > 0.5) & (fill_last > 0.5)
+    out = {}
+    names = "xyz"
+    for a in range(v_prev.shape[-1]):
+        vj, vk = v_prev[..., a][mask], v_last[..., a][mask]
+        if vj.size == 0:
+            out[f"v{names[a]}"] = float("nan")
+            out[f"v{names[a]}_norm"] = float("nan")
+            continue
+        big = np.abs(vj) > floor * np.abs(vj).max()
+        rel = np.abs((vj[big] - vk[big]) / vj[big])
+        out[f"v{names[a]}"] = float(rel.mean()) if rel.size else float("nan")
+        total = np.abs(vj).sum()
+        out[f"v{names[a]}_norm"] = float(np.abs(vj - vk).sum() / total) if total > 0 else 0.0
+    return out
+
+
+# ----------------------------------------------------------------------------- simulation
+
+
+def _threads() -> int:
+    return max(1, numba.get_num_threads())
+
+
+class FlowSimulation:
+    """One run of the flow solver: particles, background grid, clock and phase averages.
+
+    Parameters
+    ----------
+    scene : Scene, mapping, str or path
+        The scene (vessel, operation, material, fill, flow and solver sections).
+    gravity_direction : array_like, optional
+        Lab-frame unit vector of gravity (default (0, -1[, 0])); tests of the wall law
+        tilt it instead of the vessel.
+    """
+
+    def __init__(self, scene, *, gravity_direction=None):
+        self.scene = load_scene(scene)
+        self.vessel = vessel_from_scene(self.scene)
+        self.settings = s = SolverSettings.from_scene(self.scene, self.vessel)
+        self.material = Material.from_scene(self.scene)
+        self.ndim = self.vessel.ndim
+        positions, volume = self._seed()
+        self.particles = Particles(positions, volume, self.material.density)
+        self.particles.colour[:] = self._colour(positions)
+        self.grid = BackgroundGrid(self.vessel, s.cell, _threads())
+        self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
+        direction = np.zeros(self.ndim)
+        direction[1] = -1.0
+        if gravity_direction is not None:
+            direction = np.asarray(gravity_direction, float)[: self.ndim]
+            direction = direction / np.linalg.norm(direction)
+        self.gravity_direction = direction
+        self.omega = 2.0 * math.pi * s.rpm / 60.0
+        self.period = 60.0 / s.rpm if s.rpm > 0 else math.inf
+        self.t = 0.0
+        self.steps = 0
+        self.vmax = 0.0
+        self.projected = 0
+        self.plastic_steps = np.zeros(5, np.int64)
+        self.wall_seconds = 0.0
+        self.particle_updates = 0
+        self._output_grid()
+        self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
+        self.last = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
+        self.previous = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
+        self._check_range()
+
+    # --- set-up -----------------------------------------------------------------------
+    def _seed(self):
+        from ..vessels import fill_from_scene
+
+        try:
+            return fill_from_scene(self.vessel, self.scene, self.settings.cell)
+        except ValueError as err:
+            raise SceneError([f"fill: {err}"]) from None
+
+    def _colour(self, x: np.ndarray) -> np.ndarray:
+        """Colour 1 for species A by the scene's loading at phase 0 (DESIGN §2)."""
+        loading = self.scene["mixing"]["loading"]
+        if loading in ("axial", "side-side", "left-right") and self.ndim == 3:
+            return (x[:, 2] < 0).astype(float)
+        if loading == "transverse" or loading in ("axial", "side-side", "left-right"):
+            return (x[:, 0] < 0).astype(float)
+        return (x[:, 1] >= np.median(x[:, 1])).astype(float)
+
+    def _output_grid(self) -> None:
+        h = self.settings.output_cell
+        lower, upper = (np.asarray(b, float) for b in self.vessel.bounds)
+        lo = np.floor(lower / h - 1e-9) * h - h
+        hi = np.ceil(upper / h + 1e-9) * h + h
+        self.out_origin = lo
+        self.out_shape = tuple(int(round(n)) for n in (hi - lo) / h)
+        axes = [lo[a] + h * (np.arange(n) + 0.5) for a, n in enumerate(self.out_shape)]
+        self.out_axes = axes
+        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+        # a cell belongs to the vessel when its centre lies inside or within half a cell
+        # of the wall: partly filled wall cells carry their EVF and stay in the domain
+        self.out_vessel = (self.vessel.sdf(centres) < 0.5 * h).astype(np.int8)
+
+    def _check_range(self) -> None:
+        p, g = self.particles, self.grid
+        bad = mpm.particles_in_range(p.x, g.origin, 1.0 / g.h, np.asarray(g.shape, np.int64))
+        if bad >= 0:
+            where = ", ".join(f"{c:.4g}" for c in p.x[bad])
+            raise FlowBlowUpError(
+                f"step {self.steps}, t = {self.t:.6g} s: particle {bad} at ({where}) m left "
+                "the background grid (the run went unstable)"
+            )
+
+    # --- time step --------------------------------------------------------------------
+    def stable_dt(self) -> float:
+        """dt = courant * cell / (c_p + |v|max) (DESIGN §4)."""
+        return self.settings.courant * self.grid.h / (self.material.p_wave_speed + self.vmax)
+
+    def _body(self, t: float) -> tuple[np.ndarray, float, float]:
+        """Gravity in the vessel frame, omega and damping at time t."""
+        s = self.settings
+        g = s.gravity
+        if t < s.settle_time:
+            ramp = RAMP_SHARE * s.settle_time
+            scale = min(1.0, t / ramp) if ramp > 0 else 1.0
+            damping = s.damping if t < ramp else 0.0
+            return self.gravity_direction * g * scale, 0.0, damping
+        # the vessel has turned by theta about +z: lab vectors appear turned by -theta
+        theta = self.omega * (t - s.settle_time)
+        return _rotation(-theta, self.ndim) @ (self.gravity_direction * g), self.omega, 0.0
+
+    def step(self, dt: float) -> None:
+        """One MPM step: P2G, grid update, G2P, stress update."""
+        p, g = self.particles, self.grid
+        if self.steps % SORT_EVERY == 0:
+            order = mpm.sort_by_cell(p.x, g.origin, 1.0 / g.h, np.asarray(g.shape, np.int64))
+            p.permute(order)
+        gravity, omega, damping = self._body(self.t + 0.5 * dt)
+        three = self.ndim == 3
+        inv_h = 1.0 / g.h
+        (mpm.p2g_3d if three else mpm.p2g_2d)(
+            p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt,
+            g.thread_m, g.thread_p, self.starts,
+        )  # fmt: skip
+        (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
+            g.thread_m, g.thread_p, g.mass, g.momentum
+        )
+        (mpm.grid_update_3d if three else mpm.grid_update_2d)(
+            g.mass, g.momentum, g.velocity, g.origin, g.h, dt, gravity, omega, damping,
+            g.node_sdf, g.node_normal, self.material.wall_friction, WALL_BAND * g.h,
+        )  # fmt: skip
+        # no projection on interpolated distances (biased at convex walls): exact below
+        (mpm.g2p_3d if three else mpm.g2p_2d)(
+            p.x, p.v, p.C, p.vol, p.J, g.velocity, g.origin, inv_h, dt,
+            g.inside, g.node_normal, p.L,
+        )  # fmt: skip
+        self.projected += project_into_vessel(
+            self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
+            g.scratch,
+        )  # fmt: skip
+        mc.update_stresses(p.stress, p.L, p.active, dt, *self.material.return_arguments(), p.codes)
+        self.t += dt
+        self.steps += 1
+        self.particle_updates += p.count
+        if self.steps % SPEED_CHECK_EVERY == 0:
+            self._check_state()
+
+    def _check_state(self) -> None:
+        p = self.particles
+        speed = np.sqrt(np.einsum("ij,ij->i", p.v, p.v))
+        worst = int(np.argmax(np.where(np.isfinite(speed), speed, np.inf)))
+        vmax = float(speed[worst])
+        limit = self.speed_limit()
+        if not math.isfinite(vmax) or vmax > limit:
+            where = ", ".join(f"{c:.4g}" for c in p.x[worst])
+            raise FlowBlowUpError(
+                f"step {self.steps}, t = {self.t:.6g} s: particle {worst} at ({where}) m "
+                f"has speed {vmax:.4g} m/s, beyond {limit:.4g} m/s (free fall from the "
+                "vessel's height plus its wall speed, times 10): the run went unstable"
+            )
+        self.vmax = vmax
+        self._check_range()
+
+    def speed_limit(self) -> float:
+        lower, upper = (np.asarray(b, float) for b in self.vessel.bounds)
+        size = float(np.linalg.norm(upper - lower))
+        radius = float(np.max(np.abs(np.concatenate([lower, upper]))))
+        return 10.0 * (math.sqrt(2.0 * self.settings.gravity * size) + self.omega * radius) + 1.0
+
+    # --- recording --------------------------------------------------------------------
+    def revolution(self) -> float:
+        """Revolutions turned so far (0 while settling)."""
+        if not math.isfinite(self.period):
+            return 0.0
+        return max(0.0, (self.t - self.settings.settle_time) / self.period)
+
+    def end_time(self) -> float:
+        s = self.settings
+        if s.rpm > 0:
+            return s.settle_time + s.revolutions * self.period
+        return s.settle_time + s.duration
+
+    def _window(self) -> tuple[float, float, float, float]:
+        """(start of the previous recorded window, start of the last, end) in seconds."""
+        s = self.settings
+        end = self.end_time()
+        if s.rpm > 0:
+            return end - 2 * self.period, end - self.period, end
+        w = s.average_window or 0.25 * s.duration
+        return end - 2 * w, end - w, end
+
+    def record(self) -> None:
+        """Deposit the current particle state into its phase bin (when in a window)."""
+        start_prev, start_last, end = self._window()
+        if self.t < start_prev:
+            return
+        target = self.last if self.t >= start_last else self.previous
+        p = self.particles
+        if self.settings.rpm > 0:
+            phase = (self.t - self.settings.settle_time) / self.period % 1.0
+        else:
+            phase = 0.0
+        if self.lab_frame:
+            theta = self.omega * (self.t - self.settings.settle_time)
+            r = _rotation(theta, self.ndim)
+            x = p.x @ r.T
+            vel = p.v.copy()
+            vel[:, 0] -= self.omega * p.x[:, 1]
+            vel[:, 1] += self.omega * p.x[:, 0]
+            target.add(0, np.ascontiguousarray(x), np.ascontiguousarray(vel @ r.T), p.vol)
+        else:
+            target.add(target.bin_of(phase), p.x, p.v, p.vol)
+
+    # --- checkpoints ------------------------------------------------------------------
+    def fingerprint(self) -> str:
+        import hashlib
+
+        return hashlib.sha256(self.scene.to_toml().encode()).hexdigest()[:16]
+
+    def save_checkpoint(self, path: Path) -> None:
+        from ..io import write_checkpoint
+
+        arrays = dict(self.particles.arrays())
+        arrays.update(self.last.arrays("last"))
+        arrays.update(self.previous.arrays("previous"))
+        meta = {
+            "t": self.t,
+            "steps": self.steps,
+            "vmax": self.vmax,
+            "projected": self.projected,
+            "particle_updates": self.particle_updates,
+            "wall_seconds": self.wall_seconds,
+            "fingerprint": self.fingerprint(),
+            "blendxr_version": __version__,
+        }
+        write_checkpoint(path, arrays, meta)
+
+    def load_checkpoint(self, path: Path) -> None:
+        from ..io import read_checkpoint
+
+        arrays, meta = read_checkpoint(path)
+        if meta.get("fingerprint") != self.fingerprint():
+            raise ValueError(
+                f"checkpoint {path} belongs to another scene; remove it or pass resume=False"
+            )
+        self.particles.load(arrays)
+        self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
+        self.last.load("last", arrays)
+        self.previous.load("previous", arrays)
+        self.t = float(meta["t"])
+        self.steps = int(meta["steps"])
+        self.vmax = float(meta["vmax"])
+        self.projected = int(meta["projected"])
+        self.particle_updates = int(meta["particle_updates"])
+        self.wall_seconds = float(meta["wall_seconds"])
+
+    # --- driving ----------------------------------------------------------------------
+    def samples_every(self) -> int:
+        """Steps between deposits: about 12 samples per phase bin and window."""
+        s = self.settings
+        dt = self.stable_dt()
+        if s.rpm > 0:
+            window = self.period
+        else:
+            window = s.average_window or 0.25 * s.duration
+        # about 12 samples per phase bin, and at least 120 per window
+        per_window = window / dt
+        return max(1, int(min(per_window / max(s.phases, 1) / 12, per_window / 120)))
+
+    def run(
+        self,
+        *,
+        until: float | None = None,
+        wall_time: float | None = None,
+        max_steps: int | None = None,
+        checkpoint: Path | None = None,
+        progress: bool | None = None,
+        callback=None,
+    ) -> str:
+        """Step until simulated time ``until`` (default: the scene's end), a wall-clock
+        budget or a step count; returns what stopped the run."""
+        end = self.end_time() if until is None else float(until)
+        every = self.samples_every()
+        bar = _progress_bar(progress, end, self)
+        started = time.perf_counter()
+        last_save = started
+        stopped = "time"
+        try:
+            while self.t < end - 1e-12:
+                dt = min(self.stable_dt(), end - self.t)
+                try:
+                    self.step(dt)
+                except FlowBlowUpError:
+                    if checkpoint is not None:
+                        bar.write(f"last checkpoint kept: {checkpoint}")
+                    raise
+                if self.steps % every == 0:
+                    self.record()
+                if callback is not None:
+                    callback(self)
+                now = time.perf_counter()
+                if self.steps % 50 == 0:
+                    _update_bar(bar, self, now - started)
+                if checkpoint is not None and now - last_save >= self.settings.checkpoint_every:
+                    self.save_checkpoint(checkpoint)
+                    last_save = now
+                if wall_time is not None and now - started >= wall_time:
+                    stopped = "wall_time"
+                    break
+                if max_steps is not None and self.steps >= max_steps:
+                    stopped = "max_steps"
+                    break
+        finally:
+            self.wall_seconds += time.perf_counter() - started
+            bar.close()
+        if checkpoint is not None:
+            self.save_checkpoint(checkpoint)
+        return stopped
+
+
+def _progress_bar(progress, end: float, sim: FlowSimulation):
+    from tqdm.auto import tqdm
+
+    show = os.isatty(2) if progress is None else progress
+    bar = tqdm(
+        total=round(end, 6),
+        unit="s",
+        disable=not show,
+        leave=False,
+        bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s simulated [{elapsed}<{remaining}{postfix}]",
+    )
+    bar.n = round(sim.t, 6)
+    return bar
+
+
+def _update_bar(bar, sim: FlowSimulation, elapsed: float) -> None:
+    bar.n = round(min(sim.t, bar.total), 6)
+    rate = sim.particle_updates / max(elapsed + sim.wall_seconds, 1e-9)
+    bar.set_postfix_str(f"rev {sim.revolution():.2f}, {rate / 1e6:.2f} M particle-steps/s")
+
+
+# ----------------------------------------------------------------------------- public
+
+
+def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
+    p = sim.particles
+    axes = "xyz"[: sim.ndim]
+    data = {
+        "position": (("particle", "component"), p.x, {"units": "m", "long_name": "position"}),
+        "velocity": (
+            ("particle", "component"),
+            p.v,
+            {"units": "m s-1", "long_name": "velocity relative to the vessel frame"},
+        ),
+        "stress": (
+            ("particle", "row", "column"),
+            p.stress,
+            {"units": "Pa", "long_name": "Cauchy stress, tension positive"},
+        ),
+        "affine": (
+            ("particle", "component", "column2"),
+            p.C,
+            {"units": "s-1", "long_name": "APIC affine velocity matrix"},
+        ),
+        "volume": (("particle",), p.vol, {"units": "m3", "long_name": "current volume"}),
+        "volume0": (("particle",), p.vol0, {"units": "m3", "long_name": "initial volume"}),
+        "mass": (("particle",), p.mass, {"units": "kg", "long_name": "mass"}),
+        "colour": (("particle",), p.colour, {"units": "1", "long_name": "species A at phase 0"}),
+    }
+    ds = xr.Dataset(
+        data,
+        coords={"component": list(axes), "row": list("xyz"), "column": list("xyz"),
+                "column2": list(axes)},
+        attrs={
+            "title": "blendxr particle state",
+            "source": f"blendxr {__version__}",
+            "Conventions": "CF-1.11",
+            "scene": sim.scene.to_toml(),
+            "time_s": sim.t,
+            "steps": sim.steps,
+            "frame": "vessel",
+        },
+    )  # fmt: skip
+    return ds
+
+
+def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
+    s = sim.settings
+    fill, vel, raw = sim.last.fields()
+    attrs = {
+        "solver": "MLS-MPM/APIC, quadratic B-splines, Mohr-Coulomb (blendxr.flow.solver)",
+        "solver_cell_m": s.cell,
+        "particles": sim.particles.count,
+        "particles_per_cell": s.per_cell,
+        "steps": sim.steps,
+        "simulated_time_s": sim.t,
+        "wall_time_s": wall,
+        "particle_updates_per_s": sim.particle_updates / max(sim.wall_seconds, 1e-9),
+        "stopped_by": stopped,
+        "stiffness_scaling": sim.material.stiffness_scaling,
+        "p_wave_speed_m_s": sim.material.p_wave_speed,
+        "courant": s.courant,
+        "dt_last_s": sim.stable_dt(),
+        "material_volume_m3": float(sim.particles.vol0.sum()),
+        "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
+        "fill_clipped_max": float(raw.max()),
+        "projected_particles": sim.projected,
+        "revolutions_turned": sim.revolution(),
+        "samples_per_phase": sim.last.samples.tolist(),
+    }
+    if sim.previous.samples.min() > 0:
+        fill_p, vel_p, _ = sim.previous.fields()
+        for name, value in periodicity(vel_p, vel, fill_p, fill).items():
+            attrs[f"periodicity_{name}"] = value
+        attrs["periodicity_definition"] = (
+            "eq. (30) between the last two recorded revolutions (rpm = 0: the last two "
+            "averaging windows), cells with fill > 0.5 in both and |v| above 5 % of the "
+            "component's largest; *_norm: sum |dv| / sum |v| over the same cells"
+        )
+    axes = dict(zip("xyz", sim.out_axes, strict=False))
+    phases = np.arange(s.phases) / s.phases
+    comps = [vel[..., a] for a in range(sim.ndim)]
+    return flow_dataset(
+        axes["x"],
+        axes["y"],
+        phases,
+        comps[0],
+        comps[1],
+        fill,
+        sim.out_vessel,
+        z=axes.get("z"),
+        vz=comps[2] if sim.ndim == 3 else None,
+        frame="lab" if sim.lab_frame else "vessel",
+        rpm=s.rpm,
+        gravity=s.gravity,
+        scene=sim.scene,
+        title=f"blendxr flow: {sim.scene.name}",
+        attrs=attrs,
+    )
+
+
+def solve_flow(
+    scene,
+    *,
+    particles: bool = False,
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = True,
+    progress: bool | None = None,
+    wall_time: float | None = None,
+    **solver_overrides,
+):
+    """Compute a scene's flow with the built-in Mohr-Coulomb solver (DESIGN §4).
+
+    Parameters
+    ----------
+    scene : Scene, mapping, str or path
+        A scene or the name of a built-in one.
+    particles : bool
+        Also return the final particle state (positions, velocities, stress, colour) as
+        a Dataset with a ``particle`` dimension.
+    checkpoint : path, optional
+        File kept up to date every ``solver.checkpoint_every`` wall-clock seconds and at
+        the end; with ``resume`` an existing one for the same scene is continued.
+    resume : bool
+        Continue from ``checkpoint`` when it exists.
+    progress : bool, optional
+        Show a progress bar (default: when standard error is a terminal).
+    wall_time : float, optional
+        Stop after this many wall-clock seconds (the checkpoint allows a resume).
+    **solver_overrides
+        Keys of the scene's ``solver`` section (``cell``, ``revolutions``,
+        ``stiffness_scaling``, ...), applied before validation.
+
+    Returns
+    -------
+    xarray.Dataset or (xarray.Dataset, xarray.Dataset)
+        The flow dataset (schema ``flow/1``), and the particle state if asked for.
+
+    Raises
+    ------
+    SceneError
+        A scene value out of its physical range, named with its allowed range.
+    FlowBlowUpError
+        The run went unstable; the message gives the step, time and place.
+    """
+    scene = load_scene(scene)
+    if solver_overrides:
+        section = dict(scene["solver"])
+        section.update(solver_overrides)
+        scene = scene.replace(solver=section)
+    started = time.perf_counter()
+    sim = FlowSimulation(scene)
+    path = Path(checkpoint) if checkpoint is not None else None
+    if path is not None and resume and path.exists():
+        sim.load_checkpoint(path)
+    stopped = sim.run(checkpoint=path, progress=progress, wall_time=wall_time)
+    if stopped != "time":
+        raise RuntimeError(
+            f"the flow run stopped early ({stopped}) at t = {sim.t:.4g} s of "
+            f"{sim.end_time():.4g} s; call again with the same checkpoint to resume"
+        )
+    flow = _flow_from(sim, time.perf_counter() - started, stopped)
+    if particles:
+        return flow, _particle_dataset(sim)
+    return flow
