@@ -1,0 +1,642 @@
+"""Hypoelastic Mohr–Coulomb stress update of the material point solver (numba kernels).
+
+Conventions
+-----------
+Tension is positive. Each particle carries a symmetric 3×3 Cauchy stress (rows of an
+``(N, 3, 3)`` float64 array) and a velocity gradient ``L[i, j] = dv_i/dx_j`` of the same
+layout; 2-D plane strain uses the same layout with the z row and column of ``L`` zero, so
+σxz = σyz = 0 while σzz evolves. Strain rate D = sym(L), spin W = skew(L). Material
+constants are plain floats: bulk modulus K, shear modulus G (λ = K − 2G/3), sin φ, cos φ,
+cohesion c, sin ψ and a tension cutoff.
+
+One step of :func:`update_stress`
+---------------------------------
+(a) Jaumann rotation. σ ← Q σ Qᵀ with the Hughes–Winget (Cayley) rotation
+    Q = (I − dt W/2)⁻¹ (I + dt W/2), written in closed form as
+    Q = I + 2 (Ω + Ω²) / (1 + |ω|²), Ω = dt W / 2 with axial vector ω. Q is exactly
+    orthogonal, so a pure spin keeps the principal stresses to round-off, and
+    Q σ Qᵀ = σ + dt (W σ − σ W) + O(dt²): a second-order accurate integration of the
+    Jaumann rate (the rotation angle per step is 2 atan(|ω|) instead of 2 |ω|).
+(b) Elastic trial. σ ← σ + dt (λ tr(D) I + 2 G D).
+(c) Mohr–Coulomb return in principal stresses σ1 ≥ σ2 ≥ σ3 of the trial state::
+
+        f = (σ1 − σ3) + (σ1 + σ3) sin φ − 2 c cos φ ≤ 0,
+        g = (σ1 − σ3) + (σ1 + σ3) sin ψ          (plastic potential, non-associated).
+
+    In the sorted sextant f = a·σ − 2c cos φ with a = (1 + sin φ, 0, −(1 − sin φ)) and
+    ∂g/∂σ = b = (1 + sin ψ, 0, −(1 − sin ψ)). For an isotropic elastic tangent the
+    eigenvectors stay fixed during the return, which is then a problem in the space of
+    principal stresses with C = λ 1⊗1 + 2G I. Each plane i has its return direction
+    R_i = C b_i; the stress leaves the trial along a non-negative combination of the R_i
+    of the active planes (for ψ = φ this is the closest point in the energy norm of C).
+    The neighbours of the main plane are plane "2" (σ2 max, σ3 min), meeting it on the
+    triaxial-compression edge σ1 = σ2, and plane "6" (σ1 max, σ2 min), meeting it on the
+    triaxial-extension edge σ2 = σ3; all six planes meet at the apex σ1 = σ2 = σ3 = c cot φ.
+
+    Regions (after Clausen, Damkilde & Andersen, derived here for non-associated flow).
+    Seen along the ray of R1, the trial states outside the yield surface split into
+    wedges around it, in turn: plane (between the planes spanned by R1 and each edge
+    line), compression edge (from span(R1, edge σ1 = σ2) to span(R1, R2)), apex (from
+    span(R1, R2) to span(R1, R6)) and extension edge. The tests are signs of linear
+    functions of the trial state that vanish on those boundary planes:
+
+    1. Plane return σp = σ_t − (f_t / a·R1) R1. If σp is still ordered, done (code 1).
+       σp1 < σp2 puts the trial past span(R1, edge σ1 = σ2), σp2 < σp3 past
+       span(R1, edge σ2 = σ3).
+    2. Both orders broken: apex (code 4). R2 lies on the unbroken side of the second
+       boundary (its plane return has σ2 − σ3 = 2G (2 − (1 − sin ψ) a·R2 / a·R1) > 0, as
+       a·R2 < a·R1), and R6 likewise, so the wedge past both boundaries lies between
+       span(R1, R2) and span(R1, R6), inside the apex wedge.
+    3. One order broken: edge return σe = σ_t − Δγ1 R1 − Δγ_B R_B with
+       f1(σe) = f_B(σe) = 0 (a 2×2 system; B = plane 2 for σp1 < σp2, plane 6 for
+       σp2 < σp3). If σe is on the compression side of the apex (the equal pair not below,
+       resp. not above, the third stress) the trial lies before span(R1, R_B) and σe is the
+       answer (code 2 or 3, the pair set to its mean so it is exactly equal); otherwise
+       the apex, σ = c cot φ I (code 4).
+
+    The Kuhn–Tucker conditions (non-negative Δγ of the active planes, f ≤ 0) hold for
+    ψ > 0. With ψ = 0 the flow directions are deviatoric and cannot reach the apex from a
+    trial whose mean stress exceeds c cot φ; such trials are still put on the apex (the
+    mean stress is then projected, not flowed). For φ = 0 (Tresca) the edges are parallel
+    and there is no apex: step 2 cannot occur and step 3 never leaves the edge, so cot φ
+    is never formed.
+(d) Tension cutoff. If ``tension_cutoff > 0`` the principal stresses are capped at
+    t = min(tension_cutoff, c cot φ) (t = tension_cutoff when φ = 0): a Rankine cap
+    applied after the Mohr–Coulomb return, in the same eigenbasis, not a joint
+    closest-point return. It reports code 5 when it lowered a stress.
+
+Eigen-decomposition without allocation: when σxz = σyz = 0 after the elastic trial (always
+the case in plane strain, where W and D have no z coupling, since the Cayley rotation then
+keeps exact zeros) σzz is principal and the in-plane 2×2 block is decomposed in closed
+form; otherwise a cyclic Jacobi iteration on scalars gives eigenvalues and eigenvectors of
+the 3×3 tensor, skipped when bounds from the invariants p and J2 already prove the trial
+elastic. The corrected stress is σ_t + Σ_k (σk_new − σk_trial) v_k v_kᵀ, so an
+unchanged principal stress costs no round-off.
+
+Return codes (:data:`ELASTIC` ... :data:`TENSION_CAP`; :data:`INACTIVE` marks skipped
+particles in :func:`update_stresses`) let tests and diagnostics count what happened.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+__all__ = [
+    "APEX",
+    "EDGE_COMPRESSION",
+    "EDGE_EXTENSION",
+    "ELASTIC",
+    "INACTIVE",
+    "PLANE",
+    "TENSION_CAP",
+    "elastic_constants",
+    "p_wave_speed",
+    "principal_stresses",
+    "update_stress",
+    "update_stresses",
+    "yield_value",
+]
+
+#: Return codes of :func:`update_stress`.
+ELASTIC, PLANE, EDGE_COMPRESSION, EDGE_EXTENSION, APEX, TENSION_CAP = 0, 1, 2, 3, 4, 5
+#: Code written by :func:`update_stresses` for particles it skipped.
+INACTIVE = -1
+
+# error_model="numpy": no zero-division checks in the hot path (no division can see a zero).
+_JIT = {"cache": True, "fastmath": False, "error_model": "numpy"}
+
+#: Jacobi rotations stop once an off-diagonal entry is below this fraction of the tensor's
+#: size: far below round-off of the eigenvalues, reached in a few quadratically
+#: converging sweeps.
+_JACOBI_TINY = 2.0**-60
+_JACOBI_SWEEPS = 32
+
+
+# --------------------------------------------------------------------------------------
+# Elastic constants
+# --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def elastic_constants(E, nu):
+    """Bulk modulus, shear modulus and Lamé's λ of an isotropic linear material.
+
+    Parameters
+    ----------
+    E : float
+        Young's modulus, Pa.
+    nu : float
+        Poisson's ratio.
+
+    Returns
+    -------
+    K, G, lam : float
+        K = E / (3 (1 − 2ν)), G = E / (2 (1 + ν)), λ = K − 2G/3, Pa.
+    """
+    K = E / (3.0 * (1.0 - 2.0 * nu))
+    G = E / (2.0 * (1.0 + nu))
+    return K, G, K - 2.0 * G / 3.0
+
+
+@njit(**_JIT)
+def p_wave_speed(E, nu, rho):
+    """P-wave speed c_p = √((K + 4G/3) / ρ), m/s, which bounds the explicit time step.
+
+    Parameters
+    ----------
+    E : float
+        Young's modulus, Pa.
+    nu : float
+        Poisson's ratio.
+    rho : float
+        Density, kg/m³.
+    """
+    K, G, _ = elastic_constants(E, nu)
+    return math.sqrt((K + 4.0 * G / 3.0) / rho)
+
+
+# --------------------------------------------------------------------------------------
+# Small linear algebra on scalars. A symmetric tensor travels as the 6-tuple
+# (s00, s11, s22, s01, s02, s12); nothing here allocates.
+# --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _read(sig):
+    return (sig[0, 0], sig[1, 1], sig[2, 2], sig[0, 1], sig[0, 2], sig[1, 2])
+
+
+@njit(**_JIT)
+def _write(sig, s):
+    sig[0, 0] = s[0]
+    sig[1, 1] = s[1]
+    sig[2, 2] = s[2]
+    sig[0, 1] = s[3]
+    sig[1, 0] = s[3]
+    sig[0, 2] = s[4]
+    sig[2, 0] = s[4]
+    sig[1, 2] = s[5]
+    sig[2, 1] = s[5]
+
+
+@njit(**_JIT)
+def _spin_rotation(L, dt):
+    """Hughes–Winget rotation Q = (I − Ω)⁻¹ (I + Ω), Ω = dt skew(L) / 2, row by row."""
+    h = 0.25 * dt
+    w1 = h * (L[2, 1] - L[1, 2])
+    w2 = h * (L[0, 2] - L[2, 0])
+    w3 = h * (L[1, 0] - L[0, 1])
+    ww = w1 * w1 + w2 * w2 + w3 * w3
+    k = 2.0 / (1.0 + ww)
+    # Q = I + k (Ω + ω ωᵀ − |ω|² I); the diagonal keeps an exact 1 for a spin about one axis.
+    return (
+        1.0 + k * (w1 * w1 - ww),
+        k * (w1 * w2 - w3),
+        k * (w1 * w3 + w2),
+        k * (w1 * w2 + w3),
+        1.0 + k * (w2 * w2 - ww),
+        k * (w2 * w3 - w1),
+        k * (w1 * w3 - w2),
+        k * (w2 * w3 + w1),
+        1.0 + k * (w3 * w3 - ww),
+    )
+
+
+@njit(**_JIT)
+def _rotate(q, s):
+    """Q σ Qᵀ for Q given row by row (9-tuple) and symmetric σ (6-tuple)."""
+    q00, q01, q02, q10, q11, q12, q20, q21, q22 = q
+    s00, s11, s22, s01, s02, s12 = s
+    # T = Q σ
+    t00 = q00 * s00 + q01 * s01 + q02 * s02
+    t01 = q00 * s01 + q01 * s11 + q02 * s12
+    t02 = q00 * s02 + q01 * s12 + q02 * s22
+    t10 = q10 * s00 + q11 * s01 + q12 * s02
+    t11 = q10 * s01 + q11 * s11 + q12 * s12
+    t12 = q10 * s02 + q11 * s12 + q12 * s22
+    t20 = q20 * s00 + q21 * s01 + q22 * s02
+    t21 = q20 * s01 + q21 * s11 + q22 * s12
+    t22 = q20 * s02 + q21 * s12 + q22 * s22
+    return (
+        t00 * q00 + t01 * q01 + t02 * q02,
+        t10 * q10 + t11 * q11 + t12 * q12,
+        t20 * q20 + t21 * q21 + t22 * q22,
+        t00 * q10 + t01 * q11 + t02 * q12,
+        t00 * q20 + t01 * q21 + t02 * q22,
+        t10 * q20 + t11 * q21 + t12 * q22,
+    )
+
+
+@njit(**_JIT)
+def _elastic_increment(s, L, dt, lam, G):
+    """σ + dt (λ tr(D) I + 2 G D) with D = sym(L)."""
+    iso = dt * lam * (L[0, 0] + L[1, 1] + L[2, 2])
+    g2 = 2.0 * G * dt
+    gs = G * dt  # 2 G D_ij = G (L_ij + L_ji)
+    return (
+        s[0] + iso + g2 * L[0, 0],
+        s[1] + iso + g2 * L[1, 1],
+        s[2] + iso + g2 * L[2, 2],
+        s[3] + gs * (L[0, 1] + L[1, 0]),
+        s[4] + gs * (L[0, 2] + L[2, 0]),
+        s[5] + gs * (L[1, 2] + L[2, 1]),
+    )
+
+
+@njit(**_JIT)
+def _jacobi_pair(app, aqq, apq, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2, tiny):
+    """One Jacobi rotation annihilating a_pq (r the third index; v_p, v_q eigenvector columns)."""
+    if abs(apq) <= tiny:
+        return app, aqq, 0.0, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2
+    theta = (aqq - app) / (2.0 * apq)
+    if abs(theta) > 1e150:  # θ² would overflow; t → 1/(2θ)
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    s = t * c
+    return (
+        app - t * apq,
+        aqq + t * apq,
+        0.0,
+        c * arp - s * arq,
+        s * arp + c * arq,
+        c * vp0 - s * vq0,
+        c * vp1 - s * vq1,
+        c * vp2 - s * vq2,
+        s * vp0 + c * vq0,
+        s * vp1 + c * vq1,
+        s * vp2 + c * vq2,
+    )
+
+
+@njit(**_JIT)
+def _eigh3(s):
+    """Eigenvalues (e0, e1, e2) and eigenvector columns v0, v1, v2 of a symmetric 3×3.
+
+    Cyclic Jacobi on scalars. Returns a 12-tuple: e0, e1, e2, then v0, v1, v2 (3 each).
+    """
+    a00, a11, a22, a01, a02, a12 = s
+    tiny = _JACOBI_TINY * (abs(a00) + abs(a11) + abs(a22) + abs(a01) + abs(a02) + abs(a12))
+    x0, x1, x2 = 1.0, 0.0, 0.0  # column v0
+    y0, y1, y2 = 0.0, 1.0, 0.0  # column v1
+    z0, z1, z2 = 0.0, 0.0, 1.0  # column v2
+    for _ in range(_JACOBI_SWEEPS):
+        if abs(a01) <= tiny and abs(a02) <= tiny and abs(a12) <= tiny:
+            break
+        a00, a11, a01, a02, a12, x0, x1, x2, y0, y1, y2 = _jacobi_pair(
+            a00, a11, a01, a02, a12, x0, x1, x2, y0, y1, y2, tiny
+        )
+        a00, a22, a02, a01, a12, x0, x1, x2, z0, z1, z2 = _jacobi_pair(
+            a00, a22, a02, a01, a12, x0, x1, x2, z0, z1, z2, tiny
+        )
+        a11, a22, a12, a01, a02, y0, y1, y2, z0, z1, z2 = _jacobi_pair(
+            a11, a22, a12, a01, a02, y0, y1, y2, z0, z1, z2, tiny
+        )
+    return a00, a11, a22, x0, x1, x2, y0, y1, y2, z0, z1, z2
+
+
+@njit(**_JIT)
+def _eigvals_2x2(s):
+    """Eigenvalues of a stress with σxz = σyz = 0: in-plane m ± r, then σzz; and m, h, r."""
+    m = 0.5 * (s[0] + s[1])
+    h = 0.5 * (s[0] - s[1])
+    r = math.hypot(h, s[3])
+    return m + r, m - r, s[2], h, r
+
+
+@njit(**_JIT)
+def _order3(e0, e1, e2):
+    """Indices (i1, i2, i3) with e[i1] ≥ e[i2] ≥ e[i3]; ties keep index order."""
+    i1, i2, i3 = 0, 1, 2
+    a, b, c = e0, e1, e2
+    if b > a:
+        a, b = b, a
+        i1, i2 = i2, i1
+    if c > b:
+        b, c = c, b
+        i2, i3 = i3, i2
+    if b > a:
+        a, b = b, a
+        i1, i2 = i2, i1
+    return i1, i2, i3
+
+
+@njit(**_JIT)
+def _pick(i, x0, x1, x2):
+    if i == 0:
+        return x0
+    if i == 1:
+        return x1
+    return x2
+
+
+@njit(**_JIT)
+def _slot(k, i1, i2, x1, x2, x3):
+    """The value of sorted position 1, 2 or 3 that belongs to unsorted slot k."""
+    if k == i1:
+        return x1
+    if k == i2:
+        return x2
+    return x3
+
+
+@njit(**_JIT)
+def principal_stresses(sig):
+    """Principal stresses σ1 ≥ σ2 ≥ σ3 of one symmetric 3×3 stress (tension positive).
+
+    Parameters
+    ----------
+    sig : ndarray, shape (3, 3)
+        Symmetric stress, Pa.
+
+    Returns
+    -------
+    s1, s2, s3 : float
+        Sorted principal stresses, Pa.
+    """
+    s = _read(sig)
+    if s[4] == 0.0 and s[5] == 0.0:
+        e0, e1, e2, _, _ = _eigvals_2x2(s)
+    else:
+        e = _eigh3(s)
+        e0, e1, e2 = e[0], e[1], e[2]
+    i1, i2, i3 = _order3(e0, e1, e2)
+    return _pick(i1, e0, e1, e2), _pick(i2, e0, e1, e2), _pick(i3, e0, e1, e2)
+
+
+@njit(**_JIT)
+def yield_value(sig, sin_phi, cos_phi, cohesion):
+    """Mohr–Coulomb yield function f = (σ1 − σ3) + (σ1 + σ3) sin φ − 2 c cos φ, Pa.
+
+    Parameters
+    ----------
+    sig : ndarray, shape (3, 3)
+        Symmetric stress, Pa, tension positive.
+    sin_phi, cos_phi : float
+        Sine and cosine of the friction angle.
+    cohesion : float
+        Cohesion c, Pa.
+
+    Returns
+    -------
+    float
+        f ≤ 0 inside the yield surface.
+    """
+    s1, _, s3 = principal_stresses(sig)
+    return (s1 - s3) + (s1 + s3) * sin_phi - 2.0 * cohesion * cos_phi
+
+
+# --------------------------------------------------------------------------------------
+# The return in principal stresses
+# --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(**_JIT)
+def _elastic_direction(b, lam, G):
+    """C b = λ tr(b) (1, 1, 1) + 2G b in principal space."""
+    iso = lam * (b[0] + b[1] + b[2])
+    return (iso + 2.0 * G * b[0], iso + 2.0 * G * b[1], iso + 2.0 * G * b[2])
+
+
+@njit(**_JIT)
+def _edge_return(s, a1, r1, f1, aB, bB, k, lam, G):
+    """σ_t − x R1 − y R_B with f1 = f_B = 0 after the step (2×2 system for x, y)."""
+    rB = _elastic_direction(bB, lam, G)
+    fB = _dot(aB, s) - k
+    m11 = _dot(a1, r1)
+    m12 = _dot(a1, rB)
+    m21 = _dot(aB, r1)
+    m22 = _dot(aB, rB)
+    det = m11 * m22 - m12 * m21  # > 0: the diagonal dominates for any ψ, φ ≥ 0
+    x = (f1 * m22 - m12 * fB) / det
+    y = (m11 * fB - m21 * f1) / det
+    return (
+        s[0] - x * r1[0] - y * rB[0],
+        s[1] - x * r1[1] - y * rB[1],
+        s[2] - x * r1[2] - y * rB[2],
+    )
+
+
+@njit(**_JIT)
+def _mohr_coulomb_return(s1, s2, s3, lam, G, sin_phi, cos_phi, cohesion, sin_psi):
+    """Return of sorted trial principal stresses; (n1, n2, n3, code) with n1 ≥ n2 ≥ n3."""
+    k = 2.0 * cohesion * cos_phi
+    a1 = (1.0 + sin_phi, 0.0, -(1.0 - sin_phi))
+    s = (s1, s2, s3)
+    f1 = _dot(a1, s) - k
+    if f1 <= 0.0:
+        return s1, s2, s3, ELASTIC
+    r1 = _elastic_direction((1.0 + sin_psi, 0.0, -(1.0 - sin_psi)), lam, G)
+    g = f1 / _dot(a1, r1)
+    p1, p2, p3 = s1 - g * r1[0], s2 - g * r1[1], s3 - g * r1[2]
+    if p1 >= p2 and p2 >= p3:
+        return p1, p2, p3, PLANE
+    if p1 < p2 and p2 < p3 and sin_phi > 0.0:
+        # Past both edge boundaries: that wedge lies inside the apex wedge (module notes).
+        apex = cohesion * cos_phi / sin_phi
+        return apex, apex, apex, APEX
+    compression = p1 < p2
+    if compression:  # plane "2": σ2 max, σ3 min; edge σ1 = σ2
+        aB = (0.0, 1.0 + sin_phi, -(1.0 - sin_phi))
+        bB = (0.0, 1.0 + sin_psi, -(1.0 - sin_psi))
+    else:  # plane "6": σ1 max, σ2 min; edge σ2 = σ3
+        aB = (1.0 + sin_phi, -(1.0 - sin_phi), 0.0)
+        bB = (1.0 + sin_psi, -(1.0 - sin_psi), 0.0)
+    e1, e2, e3 = _edge_return(s, a1, r1, f1, aB, bB, k, lam, G)
+    if compression:
+        pair = 0.5 * (e1 + e2)
+        if sin_phi > 0.0 and pair < e3:
+            apex = cohesion * cos_phi / sin_phi
+            return apex, apex, apex, APEX
+        return pair, pair, e3, EDGE_COMPRESSION
+    pair = 0.5 * (e2 + e3)
+    if sin_phi > 0.0 and e1 < pair:
+        apex = cohesion * cos_phi / sin_phi
+        return apex, apex, apex, APEX
+    return e1, pair, pair, EDGE_EXTENSION
+
+
+@njit(**_JIT)
+def _principal_update(s1, s2, s3, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Mohr–Coulomb return, then the optional Rankine cap; (n1, n2, n3, code)."""
+    n1, n2, n3, code = _mohr_coulomb_return(s1, s2, s3, lam, G, sin_phi, cos_phi, cohesion, sin_psi)
+    if tension_cutoff > 0.0:
+        cap = tension_cutoff
+        if sin_phi > 0.0:
+            cap = min(cap, cohesion * cos_phi / sin_phi)
+        if n1 > cap:
+            n1, n2, n3 = cap, min(n2, cap), min(n3, cap)
+            code = TENSION_CAP
+    return n1, n2, n3, code
+
+
+@njit(**_JIT)
+def _return_plane_strain(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Return of a stress with σxz = σyz = 0 (σzz principal, in-plane block in closed form)."""
+    e0, e1, e2, h, r = _eigvals_2x2(s)
+    i1, i2, i3 = _order3(e0, e1, e2)
+    n1, n2, n3, code = _principal_update(
+        _pick(i1, e0, e1, e2),
+        _pick(i2, e0, e1, e2),
+        _pick(i3, e0, e1, e2),
+        lam,
+        G,
+        sin_phi,
+        cos_phi,
+        cohesion,
+        sin_psi,
+        tension_cutoff,
+    )
+    if code == ELASTIC:
+        return s, code
+    u0 = _slot(0, i1, i2, n1, n2, n3)  # new in-plane major
+    u1 = _slot(1, i1, i2, n1, n2, n3)  # new in-plane minor
+    u2 = _slot(2, i1, i2, n1, n2, n3)  # new σzz
+    mean = 0.5 * (u0 + u1)
+    half = 0.5 * (u0 - u1)
+    if r > 0.0:
+        # Same eigenvectors: scale the in-plane deviator by the new radius of Mohr's circle.
+        ratio = half / r
+        return (mean + ratio * h, mean - ratio * h, u2, ratio * s[3], 0.0, 0.0), code
+    return (u0, u1, u2, 0.0, 0.0, 0.0), code
+
+
+@njit(**_JIT)
+def _invariant_bounds(s, sin_phi, cos_phi, cohesion):
+    """Upper bounds of f and of σ1 from the mean stress p and J2, without eigenvalues.
+
+    With the deviatoric principal stresses (2/√3) √J2 cos(θ − 2πk/3) one has
+    σ1 − σ3 ≤ 2 √J2, σ1 + σ3 = 2p − s2 with |s2| ≤ √(J2/3), and σ1 ≤ p + (2/√3) √J2.
+    """
+    p = (s[0] + s[1] + s[2]) / 3.0
+    d0, d1, d2 = s[0] - p, s[1] - p, s[2] - p
+    root = math.sqrt(0.5 * (d0 * d0 + d1 * d1 + d2 * d2) + s[3] * s[3] + s[4] * s[4] + s[5] * s[5])
+    f_bound = 2.0 * root + (2.0 * p + root / math.sqrt(3.0)) * sin_phi - 2.0 * cohesion * cos_phi
+    return f_bound, p + 2.0 * root / math.sqrt(3.0)
+
+
+@njit(**_JIT)
+def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Return of a general symmetric stress through a Jacobi eigen-decomposition."""
+    # Most of a resting bed is clearly elastic: skip the eigen-decomposition there.
+    f_bound, s1_bound = _invariant_bounds(s, sin_phi, cos_phi, cohesion)
+    if f_bound <= 0.0 and (tension_cutoff <= 0.0 or s1_bound <= tension_cutoff):
+        return s, ELASTIC
+    e0, e1, e2, x0, x1, x2, y0, y1, y2, z0, z1, z2 = _eigh3(s)
+    i1, i2, i3 = _order3(e0, e1, e2)
+    t1, t2, t3 = _pick(i1, e0, e1, e2), _pick(i2, e0, e1, e2), _pick(i3, e0, e1, e2)
+    n1, n2, n3, code = _principal_update(
+        t1, t2, t3, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+    )
+    if code == ELASTIC:
+        return s, code
+    if n1 == n3:  # hydrostatic (apex): exact, and independent of the eigenvectors
+        return (n1, n1, n1, 0.0, 0.0, 0.0), code
+    d0 = _slot(0, i1, i2, n1 - t1, n2 - t2, n3 - t3)
+    d1 = _slot(1, i1, i2, n1 - t1, n2 - t2, n3 - t3)
+    d2 = _slot(2, i1, i2, n1 - t1, n2 - t2, n3 - t3)
+    return (
+        s[0] + d0 * x0 * x0 + d1 * y0 * y0 + d2 * z0 * z0,
+        s[1] + d0 * x1 * x1 + d1 * y1 * y1 + d2 * z1 * z1,
+        s[2] + d0 * x2 * x2 + d1 * y2 * y2 + d2 * z2 * z2,
+        s[3] + d0 * x0 * x1 + d1 * y0 * y1 + d2 * z0 * z1,
+        s[4] + d0 * x0 * x2 + d1 * y0 * y2 + d2 * z0 * z2,
+        s[5] + d0 * x1 * x2 + d1 * y1 * y2 + d2 * z1 * z2,
+    ), code
+
+
+# --------------------------------------------------------------------------------------
+# Public kernels
+# --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def update_stress(sig, L, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Advance one particle's stress by one step, in place; see the module notes.
+
+    Jaumann (Hughes–Winget) rotation, elastic trial, Mohr–Coulomb return in principal
+    stresses, optional tension cap. Allocation-free.
+
+    Parameters
+    ----------
+    sig : ndarray, shape (3, 3), float64
+        Symmetric Cauchy stress, Pa, tension positive; overwritten.
+    L : ndarray, shape (3, 3), float64
+        Velocity gradient ``L[i, j] = dv_i/dx_j``, 1/s (z row and column zero in 2-D).
+    dt : float
+        Time step, s.
+    K, G : float
+        Bulk and shear moduli, Pa.
+    sin_phi, cos_phi : float
+        Sine and cosine of the friction angle φ (φ = 0 is Tresca).
+    cohesion : float
+        Cohesion c, Pa.
+    sin_psi : float
+        Sine of the dilatancy angle ψ (the plastic potential's friction angle).
+    tension_cutoff : float
+        If > 0, principal stresses are capped at min(tension_cutoff, c cot φ), Pa.
+
+    Returns
+    -------
+    int
+        :data:`ELASTIC` (0), :data:`PLANE` (1), :data:`EDGE_COMPRESSION` (2, σ1 = σ2),
+        :data:`EDGE_EXTENSION` (3, σ2 = σ3), :data:`APEX` (4) or :data:`TENSION_CAP` (5).
+    """
+    lam = K - 2.0 * G / 3.0
+    s = _rotate(_spin_rotation(L, dt), _read(sig))
+    s = _elastic_increment(s, L, dt, lam, G)
+    if s[4] == 0.0 and s[5] == 0.0:
+        s, code = _return_plane_strain(
+            s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+        )
+    else:
+        s, code = _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
+    _write(sig, s)
+    return code
+
+
+@njit(parallel=True, **_JIT)
+def update_stresses(
+    stress, L, active, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, codes
+):
+    """Advance every active particle's stress by one step, in place (parallel over particles).
+
+    Parameters
+    ----------
+    stress : ndarray, shape (N, 3, 3), float64
+        Symmetric stresses, Pa, tension positive; overwritten for active particles.
+    L : ndarray, shape (N, 3, 3), float64
+        Velocity gradients ``L[p, i, j] = dv_i/dx_j``, 1/s.
+    active : ndarray, shape (N,), uint8 or bool
+        Particles to update; the others keep their stress.
+    dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff : float
+        As in :func:`update_stress`.
+    codes : ndarray, shape (N,), int8
+        Receives the return code of each particle, :data:`INACTIVE` (−1) where skipped.
+    """
+    for p in prange(stress.shape[0]):
+        if active[p]:
+            codes[p] = update_stress(
+                stress[p],
+                L[p],
+                dt,
+                K,
+                G,
+                sin_phi,
+                cos_phi,
+                cohesion,
+                sin_psi,
+                tension_cutoff,
+            )
+        else:
+            codes[p] = INACTIVE
