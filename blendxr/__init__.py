@@ -7,6 +7,7 @@ named here; everything else is an implementation detail.
 from ._version import __version__
 from .ade.stepper import SCHEMES, BlowUpError, mix
 from .flow import analytic as flows
+from .flow.solver import FlowBlowUpError, solve_flow
 from .io import open_flow, open_mixing, write_dataset
 from .metrics import (
     lacey_index,
@@ -23,6 +24,7 @@ __all__ = [
     "__version__",
     "SCHEMES",
     "BlowUpError",
+    "FlowBlowUpError",
     "Scene",
     "SceneError",
     "SchemaError",
@@ -36,6 +38,7 @@ __all__ = [
     "random_mixture_intensity",
     "rsd",
     "segregation_intensity",
+    "solve_flow",
     "thief_rsd",
     "thief_samples",
     "validate",

@@ -407,6 +407,8 @@ class FlowSimulation:
         self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
         self.last = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
         self.previous = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
+        # fixed at the start (material at rest), so that a resumed run samples the same steps
+        self.sample_every = self.samples_every()
         self._check_range()
 
     # --- set-up -----------------------------------------------------------------------
@@ -640,7 +642,7 @@ class FlowSimulation:
         """Step until simulated time ``until`` (default: the scene's end), a wall-clock
         budget or a step count; returns what stopped the run."""
         end = self.end_time() if until is None else float(until)
-        every = self.samples_every()
+        every = self.sample_every
         bar = _progress_bar(progress, end, self)
         started = time.perf_counter()
         last_save = started
