@@ -15,9 +15,9 @@ __all__ = ["main"]
 DEFAULT_MIX_SCENE = "drum-2d"
 
 
-def _flow_for_scene(scene, flow_path=None):
+def _flow_for_scene(scene, flow_path=None, quiet=False, checkpoint=None):
     """The flow a scene asks for: an analytic flow, a file, or the built-in solver."""
-    from . import flows
+    from . import flows, solve_flow
     from .io import open_flow
 
     if flow_path is not None:
@@ -29,11 +29,7 @@ def _flow_for_scene(scene, flow_path=None):
         return maker(**spec.get("parameters", {}))
     if source == "file":
         return open_flow(spec["path"])
-    raise NotImplementedError(
-        f"scene {scene.name!r} needs the built-in flow solver, which is not part of this "
-        "version; give a flow file with --flow or use an analytic scene "
-        "(blendxr scenes lists them)"
-    )
+    return solve_flow(scene, progress=not quiet, checkpoint=checkpoint)
 
 
 def _mix_overrides(args) -> dict:
@@ -75,7 +71,8 @@ def _cmd_mix(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene)
-    flow = _flow_for_scene(scene, args.flow)
+    flow_checkpoint = f"{args.checkpoint}.flow" if args.checkpoint else None
+    flow = _flow_for_scene(scene, args.flow, args.quiet, flow_checkpoint)
     mixed = mix(flow, scene, **_mix_overrides(args))
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -85,6 +82,50 @@ def _cmd_mix(args) -> int:
     save_report_figure(mixed, out / "mixing.png")
     print(_summary(mixed))
     print(f"wrote {out / 'mixing.nc'} and {out / 'mixing.png'}")
+    return 0
+
+
+def _cmd_flow(args) -> int:
+    from . import solve_flow
+    from .io import write_dataset
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    overrides = {k: v for k, v in (("cell", args.cell), ("revolutions", args.revolutions)) if v}
+    if args.stiffness_scaling is not None:
+        overrides["stiffness_scaling"] = args.stiffness_scaling
+    result = solve_flow(
+        scene,
+        particles=args.particles,
+        checkpoint=args.checkpoint,
+        progress=not args.quiet,
+        wall_time=args.wall_time,
+        **overrides,
+    )
+    flow, particles = result if args.particles else (result, None)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    write_dataset(flow, out / "flow.nc")
+    a = flow.attrs
+    print(
+        f"{a['particles']} particles, {a['steps']} steps, {a['wall_time_s']:.1f} s wall, "
+        f"{a['particle_updates_per_s'] / 1e6:.2f} M particle updates/s"
+    )
+    if "periodicity_vx_norm" in a:
+        print(
+            "periodicity between the last two revolutions (eq. 30): "
+            + ", ".join(
+                f"{c} {a[f'periodicity_{c}']:.1%}"
+                for c in ("vx", "vy", "vz")
+                if f"periodicity_{c}" in a
+            )
+        )
+    if particles is not None:
+        from .io import _atomic_path
+
+        with _atomic_path(out / "particles.nc") as tmp:
+            particles.to_netcdf(tmp)
+    print(f"wrote {out / 'flow.nc'}")
     return 0
 
 
@@ -160,6 +201,18 @@ def _parser() -> argparse.ArgumentParser:
     add_mix_arguments(p)
     p.set_defaults(func=_cmd_mix, save_flow=True)
 
+    p = sub.add_parser("flow", help="compute a scene's flow with the built-in solver")
+    p.add_argument("scene")
+    p.add_argument("-o", "--output", default=".", help="output folder (default: .)")
+    p.add_argument("--cell", type=float, help="solver cell in m")
+    p.add_argument("--revolutions", type=int, help="revolutions turned (>= 2)")
+    p.add_argument("--stiffness-scaling", dest="stiffness_scaling", type=float)
+    p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
+    p.add_argument("--wall-time", dest="wall_time", type=float, help="stop after S seconds")
+    p.add_argument("--particles", action="store_true", help="also write particles.nc")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_flow)
+
     p = sub.add_parser("validate", help="check netCDF files against the blendxr schemas")
     p.add_argument("files", nargs="+")
     p.set_defaults(func=_cmd_validate)
@@ -190,6 +243,10 @@ def main(argv=None) -> int:
         message = " ".join(str(err).split())
         print(f"blendxr: error: {message}", file=sys.stderr)
         return 2
+    except RuntimeError as err:  # a run that went unstable or stopped early
+        message = " ".join(str(err).split())
+        print(f"blendxr: stopped: {message}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

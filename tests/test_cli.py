@@ -79,3 +79,25 @@ def test_scenes_lists_builtin_scenes(capsys):
     out = capsys.readouterr().out
     for name in bx.builtin_scenes():
         assert name in out
+
+
+def test_flow_verb_solves_writes_a_valid_flow_and_particles(tmp_path, capsys):
+    status = main(["flow", "drum-2d-mpm", "-o", str(tmp_path), "--particles", "-q"])
+    assert status == 0
+    flow = bx.open_flow(tmp_path / "flow.nc")  # validates
+    assert flow.attrs["frame"] == "lab"
+    assert bx.load_scene(flow.attrs["scene"]).name == "drum-2d-mpm"
+    assert (tmp_path / "particles.nc").stat().st_size > 0
+    out = capsys.readouterr().out
+    assert "particle updates/s" in out and "periodicity" in out
+
+
+def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
+    scene = tmp_path / "bad.toml"
+    scene.write_text(
+        'name = "bad"\n[vessel]\nkind = "drum"\nndim = 2\ndiameter = 0.15\n'
+        "[fill]\nfraction = 0.4\n[material]\ndensity = -5.0\n"
+    )
+    assert main(["flow", str(scene), "-o", str(tmp_path), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "material.density" in err
