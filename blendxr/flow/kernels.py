@@ -1,0 +1,1092 @@
+"""Numba kernels of the material point method (MPM) granular flow solver.
+
+Method
+------
+MLS-MPM (the moving least squares material point method of Hu et al. 2018) with APIC
+affine transfers and quadratic B-spline weights, in the vessel frame. Plain float64 arrays
+in and out; the driver owns the time loop, the constitutive update and all bookkeeping.
+
+Grid: nodes at ``origin + i*h`` (i = 0 .. n-1 per axis, the same ``h`` on every axis);
+node arrays have shape (nx, ny) in 2-D and (nx, ny, nz) in 3-D, vector node arrays one more
+trailing axis of length d. Particles: positions ``x`` (N, d) [m], velocities ``v`` (N, d)
+[m/s], affine matrices ``C`` (N, d, d) [1/s], masses ``m`` (N) [kg], current volumes
+``vol`` (N) [m^3], Jacobians ``J`` (N) [1], Cauchy stress ``stress`` (N, 3, 3) [Pa] (always
+3 x 3, tension positive; in 2-D plane strain only the in-plane 2 x 2 block makes forces)
+and velocity gradients ``L`` (N, 3, 3) [1/s]. Pass C-contiguous float64 arrays (int64 for
+``starts``) and Python floats for scalars: other types work but compile again.
+
+One step is
+
+1. :func:`p2g_3d` scatters mass and MLS-MPM momentum
+   ``p_i += w_ip [m_p v_p + (m_p C_p - dt vol_p D^-1 sigma_p)(x_i - x_p)]``,
+   ``D^-1 = 4 / h**2``, into one private grid per thread, and :func:`reduce_grids_3d`
+   sums those (the internal-force impulse is already in the momentum);
+2. :func:`grid_update_3d` turns momentum into velocity and adds gravity, centrifugal,
+   Coriolis (an exact rotation), damping and the frictional walls;
+3. :func:`g2p_3d` gathers the particle velocity and affine matrix ``C = D^-1 B`` (also the
+   velocity gradient ``L`` for the stress update), advects, updates ``J`` and ``vol`` and
+   projects escaped particles back onto the wall;
+
+the driver then updates the stress from ``L`` (Jaumann rate, Mohr-Coulomb return). The
+``_2d`` kernels are the same in plane strain.
+
+Stability (the driver's job)
+----------------------------
+The scheme is explicit: ``dt <= C_cfl * h / (c_p + |v|max)`` with the P-wave speed
+``c_p = sqrt((K + 4G/3) / rho)`` and a Courant number ``C_cfl`` below 1 (0.3 - 0.5 is
+usual for MLS-MPM; DESIGN section 4); with ``C_cfl < 1`` no particle crosses more than a
+cell per step. Gravity, centrifugal and friction impose no limit of their own, and the
+Coriolis term is applied as an exact rotation, which is unconditionally stable.
+
+Particle-range precondition (the driver's job)
+----------------------------------------------
+Every particle's 3 x 3 (x 3) stencil must lie on the grid:
+``0.5 <= (x - origin) / h < n - 1.5`` on every axis. The kernels raise nothing and do not
+check: :func:`particles_in_range` returns the first offending particle (NaN positions
+offend too) and the driver calls it before every P2G. Out-of-range particles are clamped to
+the edge stencil, which keeps memory safe but makes their transfer wrong. A grid that holds
+the vessel with two nodes to spare on every side keeps wall-projected particles in range.
+
+Parallel loops
+--------------
+P2G scatters: two particles write the same node, so each of T chunks of the particle range
+(``starts``, see :func:`chunk_starts`) scatters into its own private grid, a leading axis of
+length T of ``grid_m``/``grid_p``, and :func:`reduce_grids_3d` sums them; no atomics, and
+the result does not depend on the thread schedule. Sorting particles by cell now and then
+(:func:`sort_by_cell`) keeps each chunk in a slab of the grid, which keeps the scatter in
+cache. Every other kernel writes disjoint outputs per iteration of its one ``prange`` loop
+(grid planes or particles); :func:`deposit_3d` and the helpers are serial.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "GRID_MASS_TINY",
+    "chunk_starts",
+    "deposit_2d",
+    "deposit_3d",
+    "g2p_2d",
+    "g2p_3d",
+    "grid_update_2d",
+    "grid_update_3d",
+    "p2g_2d",
+    "p2g_3d",
+    "particles_in_range",
+    "reduce_grids_2d",
+    "reduce_grids_3d",
+    "sort_by_cell",
+]
+
+#: Nodes with no more mass than this [kg] are empty: no velocity, zero written. Far below
+#: any real particle mass times a stencil weight, far above the subnormal range, where
+#: ``p / m`` would lose its digits.
+GRID_MASS_TINY = 1e-250
+
+# Divisions are guarded, so the NumPy error model (no exception path) changes no result.
+_JIT = {"parallel": True, "cache": True, "fastmath": False, "error_model": "numpy"}
+_JIT_SERIAL = {"cache": True, "fastmath": False, "error_model": "numpy"}
+
+# Particles per G2P work item. P2G and G2P run their prange over work items (chunks,
+# blocks of particles) and call a serial helper per item: a small parallel loop body
+# compiles much faster than a large one, and one call per block costs nothing.
+_BLOCK = 256
+
+
+# ---------------------------------------------------------------------------------------
+# Scalar helpers (small; LLVM inlines them into the kernels)
+# ---------------------------------------------------------------------------------------
+
+
+@njit(**_JIT_SERIAL)
+def _stencil(f, n):
+    """Base node and quadratic B-spline weights along one axis.
+
+    ``f`` is the position in grid units, ``(x - origin) / h``; ``n`` the number of nodes.
+    Returns ``(base, r, w0, w1, w2)``: the stencil's nodes are base, base + 1, base + 2,
+    ``r = f - base`` lies in [0.5, 1.5) and node base + a sits at ``a - r`` grid units from
+    the particle. The base is clamped to [0, n - 3] (in floating point, so NaN is caught):
+    an out-of-range particle then stays in memory, though its weights are meaningless.
+    """
+    b = np.floor(f - 0.5)
+    if not b >= 0.0:
+        b = 0.0
+    elif b > n - 3:
+        b = float(n - 3)
+    r = f - b
+    return int(b), r, 0.5 * (1.5 - r) ** 2, 0.75 - (r - 1.0) ** 2, 0.5 * (r - 0.5) ** 2
+
+
+@njit(**_JIT_SERIAL)
+def _cell(f, n):
+    """Cell (base node of the linear stencil) and fraction along one axis, clamped."""
+    b = np.floor(f)
+    if not b >= 0.0:
+        b = 0.0
+    elif b > n - 2:
+        b = float(n - 2)
+    return int(b), f - b
+
+
+@njit(**_JIT_SERIAL)
+def _wall_2d(vx, vy, nx, ny, mu):
+    """Frictional wall contact: drop an inward normal velocity, Coulomb-slow the rest."""
+    vn = vx * nx + vy * ny
+    if not vn > 0.0:
+        return vx, vy
+    tx = vx - vn * nx
+    ty = vy - vn * ny
+    vt = math.sqrt(tx * tx + ty * ty)
+    if vt <= mu * vn:
+        return 0.0, 0.0
+    s = 1.0 - mu * vn / vt
+    return tx * s, ty * s
+
+
+@njit(**_JIT_SERIAL)
+def _wall_3d(vx, vy, vz, nx, ny, nz, mu):
+    """Frictional wall contact: drop an inward normal velocity, Coulomb-slow the rest."""
+    vn = vx * nx + vy * ny + vz * nz
+    if not vn > 0.0:
+        return vx, vy, vz
+    tx = vx - vn * nx
+    ty = vy - vn * ny
+    tz = vz - vn * nz
+    vt = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if vt <= mu * vn:
+        return 0.0, 0.0, 0.0
+    s = 1.0 - mu * vn / vt
+    return tx * s, ty * s, tz * s
+
+
+@njit(**_JIT_SERIAL)
+def _zero(a):
+    """Zero a C-contiguous array in place (a plain loop: no parfor inside a prange)."""
+    flat = a.reshape(a.size)
+    for k in range(flat.size):
+        flat[k] = 0.0
+
+
+# ---------------------------------------------------------------------------------------
+# Driver helpers
+# ---------------------------------------------------------------------------------------
+
+
+def chunk_starts(n_particles, n_chunks):
+    """Split ``range(n_particles)`` into ``n_chunks`` contiguous, nearly equal chunks.
+
+    Parameters
+    ----------
+    n_particles, n_chunks : int
+        Number of particles and of chunks (private grids, usually the thread count).
+
+    Returns
+    -------
+    ndarray of int64, shape (n_chunks + 1,)
+        Chunk ``t`` is ``starts[t]:starts[t + 1]``; ``starts[0] = 0``,
+        ``starts[-1] = n_particles``.
+    """
+    return (np.arange(n_chunks + 1, dtype=np.int64) * n_particles) // n_chunks
+
+
+@njit(**_JIT_SERIAL)
+def particles_in_range(x, origin, inv_h, shape):
+    """First particle whose P2G/G2P stencil leaves the grid, or -1.
+
+    Parameters
+    ----------
+    x : ndarray of float64, shape (N, d)
+        Particle positions [m].
+    origin : ndarray of float64, shape (d,)
+        Position of node 0 [m].
+    inv_h : float
+        Inverse node spacing [1/m].
+    shape : tuple of int or ndarray of int64, length d
+        Nodes per axis.
+
+    Returns
+    -------
+    int
+        Index of the first particle with ``(x - origin) / h`` outside [0.5, n - 1.5) on
+        some axis (or NaN), -1 when every particle is in range.
+    """
+    n, d = x.shape
+    for p in range(n):
+        for a in range(d):
+            f = (x[p, a] - origin[a]) * inv_h
+            if not (0.5 <= f < shape[a] - 1.5):
+                return p
+    return -1
+
+
+@njit(**_JIT_SERIAL)
+def sort_by_cell(x, origin, inv_h, shape):
+    """Permutation that orders particles by grid cell, x-major (stable counting sort).
+
+    The cell of a particle is ``floor((x - origin) / h)`` per axis, clamped to the grid;
+    the order is by (ix, iy[, iz]) with iz fastest, and particles of one cell keep their
+    order. Apply it to every particle array (``x = x[perm]`` ...) every few tens of steps,
+    so that the P2G chunks cover compact slabs of the grid.
+
+    Parameters
+    ----------
+    x : ndarray of float64, shape (N, d)
+        Particle positions [m].
+    origin : ndarray of float64, shape (d,)
+        Position of node 0 [m].
+    inv_h : float
+        Inverse node spacing [1/m].
+    shape : tuple of int or ndarray of int64, length d
+        Nodes per axis.
+
+    Returns
+    -------
+    ndarray of int64, shape (N,)
+    """
+    n, d = x.shape
+    n_cells = 1
+    for a in range(d):
+        n_cells *= shape[a]
+    keys = np.empty(n, np.int64)
+    for p in range(n):
+        key = 0
+        for a in range(d):
+            c = np.floor((x[p, a] - origin[a]) * inv_h)
+            if not c >= 0.0:
+                c = 0.0
+            elif c > shape[a] - 1:
+                c = float(shape[a] - 1)
+            key = key * shape[a] + int(c)
+        keys[p] = key
+    first = np.zeros(n_cells + 1, np.int64)
+    for p in range(n):
+        first[keys[p] + 1] += 1
+    for k in range(n_cells):
+        first[k + 1] += first[k]
+    perm = np.empty(n, np.int64)
+    for p in range(n):
+        perm[first[keys[p]]] = p
+        first[keys[p]] += 1
+    return perm
+
+
+# ---------------------------------------------------------------------------------------
+# P2G: particles to private grids, then the sum over the private grids
+# ---------------------------------------------------------------------------------------
+
+
+@njit(**_JIT_SERIAL)
+def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
+    """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_2d`)."""
+    _zero(gm)
+    _zero(gp)
+    nx, ny = gm.shape
+    h = 1.0 / inv_h
+    stress_scale = 4.0 * inv_h * inv_h * dt  # dt * D^-1
+    for p in range(lo, hi):
+        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        mp = m[p]
+        s = stress_scale * vol[p]
+        mv0 = mp * v[p, 0]
+        mv1 = mp * v[p, 1]
+        # affine momentum Q = m C - dt vol D^-1 sigma, times h: it acts on offsets
+        # measured in grid units
+        q00 = (mp * C[p, 0, 0] - s * stress[p, 0, 0]) * h
+        q01 = (mp * C[p, 0, 1] - s * stress[p, 0, 1]) * h
+        q10 = (mp * C[p, 1, 0] - s * stress[p, 1, 0]) * h
+        q11 = (mp * C[p, 1, 1] - s * stress[p, 1, 1]) * h
+        for a in range(3):
+            dx = a - rx
+            pa0 = mv0 + q00 * dx
+            pa1 = mv1 + q10 * dx
+            i = bx + a
+            for b in range(3):
+                dy = b - ry
+                w = wx[a] * wy[b]
+                j = by + b
+                gm[i, j] += w * mp
+                gp[i, j, 0] += w * (pa0 + q01 * dy)
+                gp[i, j, 1] += w * (pa1 + q11 * dy)
+
+
+@njit(**_JIT_SERIAL)
+def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
+    """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_3d`)."""
+    _zero(gm)
+    _zero(gp)
+    nx, ny, nz = gm.shape
+    h = 1.0 / inv_h
+    stress_scale = 4.0 * inv_h * inv_h * dt  # dt * D^-1
+    for p in range(lo, hi):
+        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+        bz, rz, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        mp = m[p]
+        s = stress_scale * vol[p]
+        mv0 = mp * v[p, 0]
+        mv1 = mp * v[p, 1]
+        mv2 = mp * v[p, 2]
+        # affine momentum Q = m C - dt vol D^-1 sigma, times h (offsets in grid units)
+        q00 = (mp * C[p, 0, 0] - s * stress[p, 0, 0]) * h
+        q01 = (mp * C[p, 0, 1] - s * stress[p, 0, 1]) * h
+        q02 = (mp * C[p, 0, 2] - s * stress[p, 0, 2]) * h
+        q10 = (mp * C[p, 1, 0] - s * stress[p, 1, 0]) * h
+        q11 = (mp * C[p, 1, 1] - s * stress[p, 1, 1]) * h
+        q12 = (mp * C[p, 1, 2] - s * stress[p, 1, 2]) * h
+        q20 = (mp * C[p, 2, 0] - s * stress[p, 2, 0]) * h
+        q21 = (mp * C[p, 2, 1] - s * stress[p, 2, 1]) * h
+        q22 = (mp * C[p, 2, 2] - s * stress[p, 2, 2]) * h
+        for a in range(3):
+            dx = a - rx
+            pa0 = mv0 + q00 * dx
+            pa1 = mv1 + q10 * dx
+            pa2 = mv2 + q20 * dx
+            i = bx + a
+            for b in range(3):
+                dy = b - ry
+                pb0 = pa0 + q01 * dy
+                pb1 = pa1 + q11 * dy
+                pb2 = pa2 + q21 * dy
+                wab = wx[a] * wy[b]
+                j = by + b
+                for c in range(3):
+                    dz = c - rz
+                    w = wab * wz[c]
+                    k = bz + c
+                    gm[i, j, k] += w * mp
+                    gp[i, j, k, 0] += w * (pb0 + q02 * dz)
+                    gp[i, j, k, 1] += w * (pb1 + q12 * dz)
+                    gp[i, j, k, 2] += w * (pb2 + q22 * dz)
+
+
+@njit(**_JIT)
+def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
+    """Scatter mass and MLS-MPM momentum to per-chunk private grids (2-D plane strain).
+
+    Parameters
+    ----------
+    x, v : ndarray of float64, shape (N, 2)
+        Particle positions [m] and velocities [m/s].
+    C : ndarray of float64, shape (N, 2, 2)
+        APIC affine matrices [1/s].
+    m, vol : ndarray of float64, shape (N,)
+        Masses [kg] and current volumes [m^3] (per metre of depth in 2-D).
+    stress : ndarray of float64, shape (N, 3, 3)
+        Cauchy stress [Pa], tension positive; the in-plane 2 x 2 block is used.
+    origin : ndarray of float64, shape (2,)
+        Position of node 0 [m].
+    inv_h, dt : float
+        Inverse node spacing [1/m], time step [s].
+    grid_m : ndarray of float64, shape (T, nx, ny)
+        Receives each chunk's node masses [kg] (zeroed here first).
+    grid_p : ndarray of float64, shape (T, nx, ny, 2)
+        Receives each chunk's node momenta [kg m/s], including the internal-force impulse.
+    starts : ndarray of int64, shape (T + 1,)
+        Chunk t holds particles ``starts[t]:starts[t + 1]`` (see :func:`chunk_starts`).
+
+    Notes
+    -----
+    Precondition: every particle in range (:func:`particles_in_range`). Sum the private
+    grids with :func:`reduce_grids_2d`. T may exceed the thread count (still correct).
+    """
+    for t in prange(grid_m.shape[0]):
+        _p2g_chunk_2d(
+            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt,
+            grid_m[t], grid_p[t],
+        )  # fmt: skip
+
+
+@njit(**_JIT)
+def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
+    """Scatter mass and MLS-MPM momentum to per-chunk private grids (3-D).
+
+    Parameters
+    ----------
+    x, v : ndarray of float64, shape (N, 3)
+        Particle positions [m] and velocities [m/s].
+    C : ndarray of float64, shape (N, 3, 3)
+        APIC affine matrices [1/s].
+    m, vol : ndarray of float64, shape (N,)
+        Masses [kg] and current volumes [m^3].
+    stress : ndarray of float64, shape (N, 3, 3)
+        Cauchy stress [Pa], tension positive.
+    origin : ndarray of float64, shape (3,)
+        Position of node 0 [m].
+    inv_h, dt : float
+        Inverse node spacing [1/m], time step [s].
+    grid_m : ndarray of float64, shape (T, nx, ny, nz)
+        Receives each chunk's node masses [kg] (zeroed here first).
+    grid_p : ndarray of float64, shape (T, nx, ny, nz, 3)
+        Receives each chunk's node momenta [kg m/s], including the internal-force impulse.
+    starts : ndarray of int64, shape (T + 1,)
+        Chunk t holds particles ``starts[t]:starts[t + 1]`` (see :func:`chunk_starts`).
+
+    Notes
+    -----
+    Precondition: every particle in range (:func:`particles_in_range`). Sum the private
+    grids with :func:`reduce_grids_3d`. T may exceed the thread count (still correct).
+    """
+    for t in prange(grid_m.shape[0]):
+        _p2g_chunk_3d(
+            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt,
+            grid_m[t], grid_p[t],
+        )  # fmt: skip
+
+
+@njit(**_JIT)
+def reduce_grids_2d(grid_m, grid_p, out_m, out_p):
+    """Sum the private grids of :func:`p2g_2d` over their leading (chunk) axis.
+
+    Parameters
+    ----------
+    grid_m : ndarray of float64, shape (T, nx, ny)
+    grid_p : ndarray of float64, shape (T, nx, ny, 2)
+    out_m : ndarray of float64, shape (nx, ny)
+        Receives the node masses [kg].
+    out_p : ndarray of float64, shape (nx, ny, 2)
+        Receives the node momenta [kg m/s].
+    """
+    n_chunks, nx, ny = grid_m.shape
+    for i in prange(nx):
+        for j in range(ny):
+            mass = grid_m[0, i, j]
+            p0 = grid_p[0, i, j, 0]
+            p1 = grid_p[0, i, j, 1]
+            for t in range(1, n_chunks):
+                mass += grid_m[t, i, j]
+                p0 += grid_p[t, i, j, 0]
+                p1 += grid_p[t, i, j, 1]
+            out_m[i, j] = mass
+            out_p[i, j, 0] = p0
+            out_p[i, j, 1] = p1
+
+
+@njit(**_JIT)
+def reduce_grids_3d(grid_m, grid_p, out_m, out_p):
+    """Sum the private grids of :func:`p2g_3d` over their leading (chunk) axis.
+
+    Parameters
+    ----------
+    grid_m : ndarray of float64, shape (T, nx, ny, nz)
+    grid_p : ndarray of float64, shape (T, nx, ny, nz, 3)
+    out_m : ndarray of float64, shape (nx, ny, nz)
+        Receives the node masses [kg].
+    out_p : ndarray of float64, shape (nx, ny, nz, 3)
+        Receives the node momenta [kg m/s].
+    """
+    n_chunks, nx, ny, nz = grid_m.shape
+    for i in prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                mass = grid_m[0, i, j, k]
+                p0 = grid_p[0, i, j, k, 0]
+                p1 = grid_p[0, i, j, k, 1]
+                p2 = grid_p[0, i, j, k, 2]
+                for t in range(1, n_chunks):
+                    mass += grid_m[t, i, j, k]
+                    p0 += grid_p[t, i, j, k, 0]
+                    p1 += grid_p[t, i, j, k, 1]
+                    p2 += grid_p[t, i, j, k, 2]
+                out_m[i, j, k] = mass
+                out_p[i, j, k, 0] = p0
+                out_p[i, j, k, 1] = p1
+                out_p[i, j, k, 2] = p2
+
+
+# ---------------------------------------------------------------------------------------
+# Grid update
+# ---------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def grid_update_2d(
+    out_m,
+    out_p,
+    vel,
+    origin,
+    h,
+    dt,
+    gravity,
+    omega,
+    damping,
+    node_sdf,
+    node_normal,
+    mu_wall,
+    band,
+):
+    """Node velocities after body forces, Coriolis, damping and walls (2-D plane strain).
+
+    At each node with mass above :data:`GRID_MASS_TINY`, in this order:
+
+    1. ``v = p / m`` (the internal-force impulse is already in ``p``);
+    2. ``v += dt * (gravity + omega**2 * (x, y))`` (gravity in the vessel frame,
+       centrifugal for rotation about z through the origin);
+    3. Coriolis ``dv/dt = -2 omega z x v`` integrated exactly over dt: (vx, vy) rotated by
+       the angle ``-2 omega dt``. A rotation keeps ``|v|``: unconditionally stable and
+       energy-preserving, as the fictitious force does no work;
+    4. ``v *= 1 - damping``;
+    5. walls, where ``node_sdf > -band``: if ``vn = v . n > 0`` (into the wall) the normal
+       part is removed and the tangential part slowed by Coulomb friction,
+       ``vt <- vt max(0, 1 - mu_wall vn / |vt|)``: the friction impulse is bounded by the
+       normal impulse removed. Nodes outside the vessel follow the same rule.
+
+    Parameters
+    ----------
+    out_m : ndarray of float64, shape (nx, ny)
+        Node masses [kg].
+    out_p : ndarray of float64, shape (nx, ny, 2)
+        Node momenta [kg m/s].
+    vel : ndarray of float64, shape (nx, ny, 2)
+        Receives node velocities [m/s] (zero at nodes without mass).
+    origin : ndarray of float64, shape (2,)
+        Position of node 0 [m], relative to the rotation axis.
+    h, dt : float
+        Node spacing [m], time step [s].
+    gravity : ndarray of float64, shape (2,)
+        Gravity in the vessel frame [m/s^2].
+    omega : float
+        Angular velocity of the vessel about +z [rad/s].
+    damping : float
+        Velocity damping per step, in [0, 1) (settling only; 0 otherwise).
+    node_sdf : ndarray of float64, shape (nx, ny)
+        Signed distance to the vessel wall at the nodes [m], negative inside.
+    node_normal : ndarray of float64, shape (nx, ny, 2)
+        Outward unit wall normals at the nodes (not renormalised here).
+    mu_wall : float
+        Wall friction coefficient.
+    band : float
+        Contact band [m], >= 0: nodes with ``node_sdf > -band`` feel the wall.
+    """
+    nx, ny = out_m.shape
+    w2 = omega * omega
+    cos_c = math.cos(2.0 * omega * dt)
+    sin_c = math.sin(2.0 * omega * dt)
+    keep = 1.0 - damping
+    for i in prange(nx):
+        px = origin[0] + i * h
+        for j in range(ny):
+            mass = out_m[i, j]
+            if not mass > GRID_MASS_TINY:
+                vel[i, j, 0] = 0.0
+                vel[i, j, 1] = 0.0
+                continue
+            py = origin[1] + j * h
+            vx = out_p[i, j, 0] / mass + dt * (gravity[0] + w2 * px)
+            vy = out_p[i, j, 1] / mass + dt * (gravity[1] + w2 * py)
+            vx, vy = (vx * cos_c + vy * sin_c) * keep, (vy * cos_c - vx * sin_c) * keep
+            if node_sdf[i, j] > -band:
+                vx, vy = _wall_2d(vx, vy, node_normal[i, j, 0], node_normal[i, j, 1], mu_wall)
+            vel[i, j, 0] = vx
+            vel[i, j, 1] = vy
+
+
+@njit(**_JIT)
+def grid_update_3d(
+    out_m,
+    out_p,
+    vel,
+    origin,
+    h,
+    dt,
+    gravity,
+    omega,
+    damping,
+    node_sdf,
+    node_normal,
+    mu_wall,
+    band,
+):
+    """Node velocities after body forces, Coriolis, damping and walls (3-D).
+
+    As :func:`grid_update_2d`, with node arrays of shape (nx, ny, nz) and vector arrays of
+    shape (nx, ny, nz, 3). Centrifugal acceleration is ``omega**2 * (x, y, 0)``; Coriolis
+    rotates (vx, vy) by ``-2 omega dt`` and leaves vz.
+
+    Parameters
+    ----------
+    out_m : ndarray of float64, shape (nx, ny, nz)
+        Node masses [kg].
+    out_p : ndarray of float64, shape (nx, ny, nz, 3)
+        Node momenta [kg m/s].
+    vel : ndarray of float64, shape (nx, ny, nz, 3)
+        Receives node velocities [m/s] (zero at nodes without mass).
+    origin : ndarray of float64, shape (3,)
+        Position of node 0 [m], relative to the rotation axis.
+    h, dt : float
+        Node spacing [m], time step [s].
+    gravity : ndarray of float64, shape (3,)
+        Gravity in the vessel frame [m/s^2].
+    omega : float
+        Angular velocity of the vessel about +z [rad/s].
+    damping : float
+        Velocity damping per step, in [0, 1).
+    node_sdf : ndarray of float64, shape (nx, ny, nz)
+        Signed distance to the vessel wall at the nodes [m], negative inside.
+    node_normal : ndarray of float64, shape (nx, ny, nz, 3)
+        Outward unit wall normals at the nodes.
+    mu_wall : float
+        Wall friction coefficient.
+    band : float
+        Contact band [m], >= 0.
+    """
+    nx, ny, nz = out_m.shape
+    w2 = omega * omega
+    cos_c = math.cos(2.0 * omega * dt)
+    sin_c = math.sin(2.0 * omega * dt)
+    keep = 1.0 - damping
+    for i in prange(nx):
+        ax = dt * (gravity[0] + w2 * (origin[0] + i * h))
+        for j in range(ny):
+            ay = dt * (gravity[1] + w2 * (origin[1] + j * h))
+            for k in range(nz):
+                mass = out_m[i, j, k]
+                if not mass > GRID_MASS_TINY:
+                    vel[i, j, k, 0] = 0.0
+                    vel[i, j, k, 1] = 0.0
+                    vel[i, j, k, 2] = 0.0
+                    continue
+                vx = out_p[i, j, k, 0] / mass + ax
+                vy = out_p[i, j, k, 1] / mass + ay
+                vz = (out_p[i, j, k, 2] / mass + dt * gravity[2]) * keep
+                vx, vy = (vx * cos_c + vy * sin_c) * keep, (vy * cos_c - vx * sin_c) * keep
+                if node_sdf[i, j, k] > -band:
+                    vx, vy, vz = _wall_3d(
+                        vx,
+                        vy,
+                        vz,
+                        node_normal[i, j, k, 0],
+                        node_normal[i, j, k, 1],
+                        node_normal[i, j, k, 2],
+                        mu_wall,
+                    )
+                vel[i, j, k, 0] = vx
+                vel[i, j, k, 1] = vy
+                vel[i, j, k, 2] = vz
+
+
+# ---------------------------------------------------------------------------------------
+# G2P
+#
+# The gather sums w_i v_i and B = sum w_i v_i (x_i - x_p)^T. Offsets are measured in grid
+# units, so B is built as sum w_i v_i i - (sum w_i v_i) r, and the weights factor per
+# axis: each line of three nodes along the last axis is summed first (with its first
+# moment), then the lines are weighted. That needs a third fewer operations than the
+# node-by-node form, and the three nodes of a line are adjacent in memory.
+# ---------------------------------------------------------------------------------------
+
+
+@njit(**_JIT_SERIAL)
+def _g2p_range_2d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
+    """G2P of particles lo:hi (see :func:`g2p_2d`); returns how many were projected."""
+    nx, ny = node_sdf.shape
+    scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
+    projected = 0
+    for p in range(lo, hi):
+        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+        wx = (wx0, wx1, wx2)
+        wy2b = 2.0 * wy2
+        v0 = 0.0
+        v1 = 0.0
+        b00 = 0.0
+        b01 = 0.0
+        b10 = 0.0
+        b11 = 0.0
+        for a in range(3):
+            i = bx + a
+            wa = wx[a]
+            u00 = vel[i, by, 0]
+            u01 = vel[i, by, 1]
+            u10 = vel[i, by + 1, 0]
+            u11 = vel[i, by + 1, 1]
+            u20 = vel[i, by + 2, 0]
+            u21 = vel[i, by + 2, 1]
+            l0 = wa * (wy0 * u00 + wy1 * u10 + wy2 * u20)
+            l1 = wa * (wy0 * u01 + wy1 * u11 + wy2 * u21)
+            v0 += l0
+            v1 += l1
+            b01 += wa * (wy1 * u10 + wy2b * u20)
+            b11 += wa * (wy1 * u11 + wy2b * u21)
+            if a > 0:
+                b00 += a * l0
+                b10 += a * l1
+        c00 = scale * (b00 - v0 * rx)
+        c01 = scale * (b01 - v0 * ry)
+        c10 = scale * (b10 - v1 * rx)
+        c11 = scale * (b11 - v1 * ry)
+        C[p, 0, 0] = c00
+        C[p, 0, 1] = c01
+        C[p, 1, 0] = c10
+        C[p, 1, 1] = c11
+        for r in range(3):
+            for s in range(3):
+                L[p, r, s] = 0.0
+        L[p, 0, 0] = c00
+        L[p, 0, 1] = c01
+        L[p, 1, 0] = c10
+        L[p, 1, 1] = c11
+        growth = (1.0 + dt * c00) * (1.0 + dt * c11) - dt * dt * c01 * c10
+        J[p] *= growth
+        vol[p] *= growth
+        x0 = x[p, 0] + dt * v0
+        x1 = x[p, 1] + dt * v1
+        # wall: bilinear SDF at the new position; the normal only when outside
+        ix, tx = _cell((x0 - origin[0]) * inv_h, nx)
+        iy, ty = _cell((x1 - origin[1]) * inv_h, ny)
+        sx = 1.0 - tx
+        sy = 1.0 - ty
+        phi = sx * (sy * node_sdf[ix, iy] + ty * node_sdf[ix, iy + 1]) + tx * (
+            sy * node_sdf[ix + 1, iy] + ty * node_sdf[ix + 1, iy + 1]
+        )
+        if phi > 0.0:
+            n0 = sx * (sy * node_normal[ix, iy, 0] + ty * node_normal[ix, iy + 1, 0]) + tx * (
+                sy * node_normal[ix + 1, iy, 0] + ty * node_normal[ix + 1, iy + 1, 0]
+            )
+            n1 = sx * (sy * node_normal[ix, iy, 1] + ty * node_normal[ix, iy + 1, 1]) + tx * (
+                sy * node_normal[ix + 1, iy, 1] + ty * node_normal[ix + 1, iy + 1, 1]
+            )
+            norm = math.sqrt(n0 * n0 + n1 * n1)
+            if norm > 0.0:
+                n0 /= norm
+                n1 /= norm
+                x0 -= phi * n0
+                x1 -= phi * n1
+                vn = v0 * n0 + v1 * n1
+                if vn > 0.0:
+                    v0 -= vn * n0
+                    v1 -= vn * n1
+                projected += 1
+        x[p, 0] = x0
+        x[p, 1] = x1
+        v[p, 0] = v0
+        v[p, 1] = v1
+    return projected
+
+
+@njit(**_JIT_SERIAL)
+def _trilinear_3d(field, ix, iy, iz, tx, ty, tz):
+    """Trilinear interpolation of a node field inside cell (ix, iy, iz)."""
+    sx = 1.0 - tx
+    sy = 1.0 - ty
+    sz = 1.0 - tz
+    return sx * (
+        sy * (sz * field[ix, iy, iz] + tz * field[ix, iy, iz + 1])
+        + ty * (sz * field[ix, iy + 1, iz] + tz * field[ix, iy + 1, iz + 1])
+    ) + tx * (
+        sy * (sz * field[ix + 1, iy, iz] + tz * field[ix + 1, iy, iz + 1])
+        + ty * (sz * field[ix + 1, iy + 1, iz] + tz * field[ix + 1, iy + 1, iz + 1])
+    )
+
+
+@njit(**_JIT_SERIAL)
+def _g2p_range_3d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
+    """G2P of particles lo:hi (see :func:`g2p_3d`); returns how many were projected."""
+    nx, ny, nz = node_sdf.shape
+    scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
+    projected = 0
+    for p in range(lo, hi):
+        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+        bz, rz, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz2b = 2.0 * wz2
+        v0 = 0.0
+        v1 = 0.0
+        v2 = 0.0
+        b00 = 0.0
+        b01 = 0.0
+        b02 = 0.0
+        b10 = 0.0
+        b11 = 0.0
+        b12 = 0.0
+        b20 = 0.0
+        b21 = 0.0
+        b22 = 0.0
+        for a in range(3):
+            i = bx + a
+            for b in range(3):
+                j = by + b
+                wab = wx[a] * wy[b]
+                u00 = vel[i, j, bz, 0]
+                u01 = vel[i, j, bz, 1]
+                u02 = vel[i, j, bz, 2]
+                u10 = vel[i, j, bz + 1, 0]
+                u11 = vel[i, j, bz + 1, 1]
+                u12 = vel[i, j, bz + 1, 2]
+                u20 = vel[i, j, bz + 2, 0]
+                u21 = vel[i, j, bz + 2, 1]
+                u22 = vel[i, j, bz + 2, 2]
+                l0 = wab * (wz0 * u00 + wz1 * u10 + wz2 * u20)
+                l1 = wab * (wz0 * u01 + wz1 * u11 + wz2 * u21)
+                l2 = wab * (wz0 * u02 + wz1 * u12 + wz2 * u22)
+                v0 += l0
+                v1 += l1
+                v2 += l2
+                b02 += wab * (wz1 * u10 + wz2b * u20)
+                b12 += wab * (wz1 * u11 + wz2b * u21)
+                b22 += wab * (wz1 * u12 + wz2b * u22)
+                if a > 0:
+                    b00 += a * l0
+                    b10 += a * l1
+                    b20 += a * l2
+                if b > 0:
+                    b01 += b * l0
+                    b11 += b * l1
+                    b21 += b * l2
+        c00 = scale * (b00 - v0 * rx)
+        c01 = scale * (b01 - v0 * ry)
+        c02 = scale * (b02 - v0 * rz)
+        c10 = scale * (b10 - v1 * rx)
+        c11 = scale * (b11 - v1 * ry)
+        c12 = scale * (b12 - v1 * rz)
+        c20 = scale * (b20 - v2 * rx)
+        c21 = scale * (b21 - v2 * ry)
+        c22 = scale * (b22 - v2 * rz)
+        C[p, 0, 0] = L[p, 0, 0] = c00
+        C[p, 0, 1] = L[p, 0, 1] = c01
+        C[p, 0, 2] = L[p, 0, 2] = c02
+        C[p, 1, 0] = L[p, 1, 0] = c10
+        C[p, 1, 1] = L[p, 1, 1] = c11
+        C[p, 1, 2] = L[p, 1, 2] = c12
+        C[p, 2, 0] = L[p, 2, 0] = c20
+        C[p, 2, 1] = L[p, 2, 1] = c21
+        C[p, 2, 2] = L[p, 2, 2] = c22
+        # det(I + dt L) by cofactors along the first row
+        a00 = 1.0 + dt * c00
+        a11 = 1.0 + dt * c11
+        a22 = 1.0 + dt * c22
+        a01 = dt * c01
+        a02 = dt * c02
+        a10 = dt * c10
+        a12 = dt * c12
+        a20 = dt * c20
+        a21 = dt * c21
+        growth = (
+            a00 * (a11 * a22 - a12 * a21)
+            - a01 * (a10 * a22 - a12 * a20)
+            + a02 * (a10 * a21 - a11 * a20)
+        )
+        J[p] *= growth
+        vol[p] *= growth
+        x0 = x[p, 0] + dt * v0
+        x1 = x[p, 1] + dt * v1
+        x2 = x[p, 2] + dt * v2
+        # wall: trilinear SDF at the new position; the normal only when outside
+        ix, tx = _cell((x0 - origin[0]) * inv_h, nx)
+        iy, ty = _cell((x1 - origin[1]) * inv_h, ny)
+        iz, tz = _cell((x2 - origin[2]) * inv_h, nz)
+        phi = _trilinear_3d(node_sdf, ix, iy, iz, tx, ty, tz)
+        if phi > 0.0:
+            n0 = _trilinear_3d(node_normal[..., 0], ix, iy, iz, tx, ty, tz)
+            n1 = _trilinear_3d(node_normal[..., 1], ix, iy, iz, tx, ty, tz)
+            n2 = _trilinear_3d(node_normal[..., 2], ix, iy, iz, tx, ty, tz)
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            if norm > 0.0:
+                n0 /= norm
+                n1 /= norm
+                n2 /= norm
+                x0 -= phi * n0
+                x1 -= phi * n1
+                x2 -= phi * n2
+                vn = v0 * n0 + v1 * n1 + v2 * n2
+                if vn > 0.0:
+                    v0 -= vn * n0
+                    v1 -= vn * n1
+                    v2 -= vn * n2
+                projected += 1
+        x[p, 0] = x0
+        x[p, 1] = x1
+        x[p, 2] = x2
+        v[p, 0] = v0
+        v[p, 1] = v1
+        v[p, 2] = v2
+    return projected
+
+
+@njit(**_JIT)
+def g2p_2d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
+    """Gather velocities and affine matrices, advect, project escaped particles (2-D).
+
+    Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``),
+    ``L = C``; ``x += dt v``; with ``f = det(I + dt L)``, ``J *= f`` and ``vol *= f`` (so
+    ``vol / J`` stays the initial volume up to round-off). Then, if the bilinear
+    interpolation ``phi`` of ``node_sdf`` at the new ``x`` is positive (the particle left
+    the vessel), ``x -= phi n`` with ``n`` the normalised interpolated ``node_normal``, and
+    an outward normal velocity ``v . n > 0`` is removed.
+
+    Parameters
+    ----------
+    x : ndarray of float64, shape (N, 2)
+        Particle positions [m], updated in place.
+    v : ndarray of float64, shape (N, 2)
+        Receives particle velocities [m/s].
+    C : ndarray of float64, shape (N, 2, 2)
+        Receives APIC affine matrices [1/s].
+    vol, J : ndarray of float64, shape (N,)
+        Current volumes [m^3] and Jacobians, updated in place.
+    vel : ndarray of float64, shape (nx, ny, 2)
+        Node velocities [m/s] from :func:`grid_update_2d`.
+    origin : ndarray of float64, shape (2,)
+        Position of node 0 [m].
+    inv_h, dt : float
+        Inverse node spacing [1/m], time step [s].
+    node_sdf : ndarray of float64, shape (nx, ny)
+        Signed distance to the wall at the nodes [m], negative inside the vessel.
+    node_normal : ndarray of float64, shape (nx, ny, 2)
+        Outward wall normals at the nodes.
+    L : ndarray of float64, shape (N, 3, 3)
+        Receives velocity gradients [1/s] (z row and column zero).
+
+    Returns
+    -------
+    int
+        Number of particles projected back onto the wall.
+    """
+    n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
+    projected = 0
+    for block in prange(n_blocks):
+        lo = block * _BLOCK
+        hi = min(lo + _BLOCK, x.shape[0])
+        projected += _g2p_range_2d(
+            lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L
+        )
+    return projected
+
+
+@njit(**_JIT)
+def g2p_3d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
+    """Gather velocities and affine matrices, advect, project escaped particles (3-D).
+
+    As :func:`g2p_2d` in three dimensions (trilinear wall interpolation).
+
+    Parameters
+    ----------
+    x : ndarray of float64, shape (N, 3)
+        Particle positions [m], updated in place.
+    v : ndarray of float64, shape (N, 3)
+        Receives particle velocities [m/s].
+    C : ndarray of float64, shape (N, 3, 3)
+        Receives APIC affine matrices [1/s].
+    vol, J : ndarray of float64, shape (N,)
+        Current volumes [m^3] and Jacobians, updated in place (``*= det(I + dt L)``).
+    vel : ndarray of float64, shape (nx, ny, nz, 3)
+        Node velocities [m/s] from :func:`grid_update_3d`.
+    origin : ndarray of float64, shape (3,)
+        Position of node 0 [m].
+    inv_h, dt : float
+        Inverse node spacing [1/m], time step [s].
+    node_sdf : ndarray of float64, shape (nx, ny, nz)
+        Signed distance to the wall at the nodes [m], negative inside the vessel.
+    node_normal : ndarray of float64, shape (nx, ny, nz, 3)
+        Outward wall normals at the nodes.
+    L : ndarray of float64, shape (N, 3, 3)
+        Receives velocity gradients [1/s] (equal to ``C``).
+
+    Returns
+    -------
+    int
+        Number of particles projected back onto the wall.
+    """
+    n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
+    projected = 0
+    for block in prange(n_blocks):
+        lo = block * _BLOCK
+        hi = min(lo + _BLOCK, x.shape[0])
+        projected += _g2p_range_3d(
+            lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L
+        )
+    return projected
+
+
+# ---------------------------------------------------------------------------------------
+# Deposit onto the output grid
+# ---------------------------------------------------------------------------------------
+# Serial: it runs once per output phase bin every few steps and costs a few ns per
+# particle, well under one P2G; a parallel version would need per-thread accumulators.
+
+
+@njit(**_JIT_SERIAL)
+def deposit_2d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
+    """Add particle volume and volume-weighted velocity to output cells (2-D).
+
+    Nearest-cell binning: cell (i, j) spans ``origin_out + [i, i + 1) * h_out`` by
+    ``origin_out + [j, j + 1) * h_out``; particles outside every cell are skipped. The
+    driver divides ``acc_mom`` by ``acc_vol`` (velocity) and ``acc_vol`` by the cell volume
+    and the number of deposits (fill).
+
+    Parameters
+    ----------
+    x, v : ndarray of float64, shape (N, 2)
+        Particle positions [m] and velocities [m/s].
+    vol : ndarray of float64, shape (N,)
+        Particle volumes [m^3].
+    origin_out : ndarray of float64, shape (2,)
+        Lower corner of output cell (0, 0) [m].
+    inv_h_out : float
+        Inverse output cell size [1/m].
+    acc_vol : ndarray of float64, shape (mx, my)
+        Accumulated volume [m^3], added to.
+    acc_mom : ndarray of float64, shape (mx, my, 2)
+        Accumulated volume times velocity [m^4/s], added to.
+    """
+    mx, my = acc_vol.shape
+    for p in range(x.shape[0]):
+        fx = (x[p, 0] - origin_out[0]) * inv_h_out
+        fy = (x[p, 1] - origin_out[1]) * inv_h_out
+        if not (0.0 <= fx < mx and 0.0 <= fy < my):
+            continue
+        i = int(fx)
+        j = int(fy)
+        vp = vol[p]
+        acc_vol[i, j] += vp
+        acc_mom[i, j, 0] += vp * v[p, 0]
+        acc_mom[i, j, 1] += vp * v[p, 1]
+
+
+@njit(**_JIT_SERIAL)
+def deposit_3d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
+    """Add particle volume and volume-weighted velocity to output cells (3-D).
+
+    As :func:`deposit_2d` with cells (i, j, k).
+
+    Parameters
+    ----------
+    x, v : ndarray of float64, shape (N, 3)
+        Particle positions [m] and velocities [m/s].
+    vol : ndarray of float64, shape (N,)
+        Particle volumes [m^3].
+    origin_out : ndarray of float64, shape (3,)
+        Lower corner of output cell (0, 0, 0) [m].
+    inv_h_out : float
+        Inverse output cell size [1/m].
+    acc_vol : ndarray of float64, shape (mx, my, mz)
+        Accumulated volume [m^3], added to.
+    acc_mom : ndarray of float64, shape (mx, my, mz, 3)
+        Accumulated volume times velocity [m^4/s], added to.
+    """
+    mx, my, mz = acc_vol.shape
+    for p in range(x.shape[0]):
+        fx = (x[p, 0] - origin_out[0]) * inv_h_out
+        fy = (x[p, 1] - origin_out[1]) * inv_h_out
+        fz = (x[p, 2] - origin_out[2]) * inv_h_out
+        if not (0.0 <= fx < mx and 0.0 <= fy < my and 0.0 <= fz < mz):
+            continue
+        i = int(fx)
+        j = int(fy)
+        k = int(fz)
+        vp = vol[p]
+        acc_vol[i, j, k] += vp
+        acc_mom[i, j, k, 0] += vp * v[p, 0]
+        acc_mom[i, j, k, 1] += vp * v[p, 1]
+        acc_mom[i, j, k, 2] += vp * v[p, 2]

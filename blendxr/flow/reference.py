@@ -1,0 +1,172 @@
+"""Pure-NumPy reference twins of the MPM kernels in :mod:`blendxr.flow.kernels`.
+
+Slow and written for reading: one code path for 2-D and 3-D, whole-array expressions, a
+loop over the 3**d stencil offsets. Used only by the tests, which check that each numba
+kernel gives the same numbers. The twins return their results as new arrays instead of
+writing into arguments, and use one grid instead of per-thread private grids.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from .kernels import GRID_MASS_TINY
+
+__all__ = [
+    "deposit",
+    "g2p",
+    "grid_update",
+    "interpolate_linear",
+    "p2g",
+    "particles_in_range",
+    "sort_by_cell",
+    "stencil",
+]
+
+
+def stencil(x, origin, inv_h):
+    """Quadratic B-spline stencils of all particles.
+
+    Returns ``base`` (N, d) int, the first stencil node per axis; ``r`` (N, d), the
+    particle position in grid units measured from ``base``; ``w`` (3, N, d), the weight of
+    node ``base + a`` along each axis.
+    """
+    f = (x - origin) * inv_h
+    base = np.floor(f - 0.5).astype(np.int64)
+    r = f - base
+    w = np.stack([0.5 * (1.5 - r) ** 2, 0.75 - (r - 1.0) ** 2, 0.5 * (r - 0.5) ** 2])
+    return base, r, w
+
+
+def _stencil_nodes(x, origin, inv_h):
+    """Yield ``(node_index, weight, offset_in_metres)`` for each of the 3**d offsets."""
+    d = x.shape[1]
+    base, r, w = stencil(x, origin, inv_h)
+    for offset in itertools.product(range(3), repeat=d):
+        offset = np.array(offset)
+        weight = np.prod([w[offset[a], :, a] for a in range(d)], axis=0)
+        node = tuple((base + offset).T)
+        yield node, weight, (offset - r) / inv_h
+
+
+def p2g(x, v, C, m, vol, stress, origin, inv_h, dt, shape):
+    """Node masses and MLS-MPM momenta: ``sum_p w [m v + (m C - dt vol D^-1 sigma) dx]``."""
+    d = x.shape[1]
+    d_inv = 4.0 * inv_h**2
+    affine = m[:, None, None] * C - (dt * vol * d_inv)[:, None, None] * stress[:, :d, :d]
+    grid_m = np.zeros(shape)
+    grid_p = np.zeros((*shape, d))
+    for node, weight, dx in _stencil_nodes(x, origin, inv_h):
+        momentum = m[:, None] * v + np.einsum("pij,pj->pi", affine, dx)
+        np.add.at(grid_m, node, weight * m)
+        np.add.at(grid_p, node, weight[:, None] * momentum)
+    return grid_m, grid_p
+
+
+def grid_update(
+    grid_m, grid_p, origin, h, dt, gravity, omega, damping, node_sdf, node_normal, mu_wall, band
+):
+    """Node velocities: forces, exact Coriolis rotation, damping, frictional walls."""
+    d = grid_m.ndim
+    axes = [origin[a] + h * np.arange(n) for a, n in enumerate(grid_m.shape)]
+    position = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    has_mass = grid_m > GRID_MASS_TINY
+    vel = np.zeros_like(grid_p)
+    vel[has_mass] = grid_p[has_mass] / grid_m[has_mass][:, None]
+
+    centrifugal = omega**2 * position
+    if d == 3:
+        centrifugal[..., 2] = 0.0
+    vel += dt * (np.asarray(gravity) + centrifugal)
+
+    angle = -2.0 * omega * dt  # dv/dt = -2 omega z x v turns (vx, vy) at rate -2 omega
+    vx, vy = vel[..., 0].copy(), vel[..., 1].copy()
+    vel[..., 0] = np.cos(angle) * vx - np.sin(angle) * vy
+    vel[..., 1] = np.sin(angle) * vx + np.cos(angle) * vy
+    vel *= 1.0 - damping
+
+    vn = np.sum(vel * node_normal, axis=-1)
+    contact = (node_sdf > -band) & (vn > 0.0)
+    tangential = vel - vn[..., None] * node_normal
+    speed = np.linalg.norm(tangential, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        keep = np.where(speed > mu_wall * vn, 1.0 - mu_wall * vn / speed, 0.0)
+    vel = np.where(contact[..., None], keep[..., None] * tangential, vel)
+    vel[~has_mass] = 0.0
+    return vel
+
+
+def interpolate_linear(field, x, origin, inv_h):
+    """(Bi/tri)linear interpolation of node values ``field`` (shape grid or grid + (k,))."""
+    d = x.shape[1]
+    f = (x - origin) * inv_h
+    cell = np.clip(np.floor(f), 0, np.array(field.shape[:d]) - 2).astype(np.int64)
+    t = f - cell
+    out = 0.0
+    for corner in itertools.product(range(2), repeat=d):
+        corner = np.array(corner)
+        weight = np.prod(np.where(corner == 1, t, 1.0 - t), axis=1)
+        value = field[tuple((cell + corner).T)]
+        out = out + (weight[:, None] * value if value.ndim == 2 else weight * value)
+    return out
+
+
+def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal):
+    """Gather, advect, update J and volume, project escaped particles onto the wall.
+
+    Returns ``(x, v, C, vol, J, L, n_projected)`` as new arrays.
+    """
+    n, d = x.shape
+    v_new = np.zeros((n, d))
+    b = np.zeros((n, d, d))
+    for node, weight, dx in _stencil_nodes(x, origin, inv_h):
+        v_node = vel[node]
+        v_new += weight[:, None] * v_node
+        b += weight[:, None, None] * np.einsum("pi,pj->pij", v_node, dx)
+    C_new = 4.0 * inv_h**2 * b
+    L = np.zeros((n, 3, 3))
+    L[:, :d, :d] = C_new
+    growth = np.linalg.det(np.eye(d) + dt * C_new)
+    x_new = x + dt * v_new
+
+    phi = interpolate_linear(node_sdf, x_new, origin, inv_h)
+    normal = interpolate_linear(node_normal, x_new, origin, inv_h)
+    length = np.linalg.norm(normal, axis=1)
+    out = (phi > 0.0) & (length > 0.0)
+    unit = normal[out] / length[out][:, None]
+    x_new[out] -= phi[out][:, None] * unit
+    vn = np.sum(v_new[out] * unit, axis=1)
+    v_new[out] -= np.maximum(vn, 0.0)[:, None] * unit
+    return x_new, v_new, C_new, vol * growth, J * growth, L, int(out.sum())
+
+
+def deposit(x, v, vol, origin_out, inv_h_out, shape_out):
+    """Volume and volume times velocity binned to the output cells holding the particles.
+
+    Returns ``(acc_vol, acc_mom)``.
+    """
+    d = x.shape[1]
+    f = (x - origin_out) * inv_h_out
+    inside = np.all((f >= 0.0) & (f < np.array(shape_out)), axis=1)
+    cell = tuple(np.floor(f[inside]).astype(np.int64).T)
+    acc_vol = np.zeros(shape_out)
+    acc_mom = np.zeros((*shape_out, d))
+    np.add.at(acc_vol, cell, vol[inside])
+    np.add.at(acc_mom, cell, vol[inside][:, None] * v[inside])
+    return acc_vol, acc_mom
+
+
+def sort_by_cell(x, origin, inv_h, shape):
+    """Stable permutation ordering particles by (ix, iy[, iz]) cell, x-major."""
+    cell = np.clip(np.floor((x - origin) * inv_h), 0, np.array(shape) - 1).astype(np.int64)
+    return np.lexsort(cell.T[::-1])
+
+
+def particles_in_range(x, origin, inv_h, shape):
+    """Index of the first particle whose stencil leaves the grid, or -1."""
+    f = (x - origin) * inv_h
+    ok = np.all((f >= 0.5) & (f < np.array(shape) - 1.5), axis=1)
+    bad = np.flatnonzero(~ok)
+    return int(bad[0]) if bad.size else -1
