@@ -197,6 +197,7 @@ class BackgroundGrid:
         self.node_normal = np.ascontiguousarray(vessel.normal(nodes))
         self.inside = np.full(self.shape, -1.0)  # "every node inside": G2P never projects
         self.scratch = np.zeros((threads, 4))
+        self.shape_array = np.asarray(self.shape, np.int64)
         self.threads = threads
         self.thread_m = np.zeros((threads, *self.shape))
         self.thread_p = np.zeros((threads, *self.shape, self.ndim))
@@ -498,7 +499,7 @@ class FlowSimulation:
         )  # fmt: skip
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
-            g.scratch,
+            g.scratch, g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
         )  # fmt: skip
         mc.update_stresses(p.stress, p.L, p.active, dt, *self.material.return_arguments(), p.codes)
         self.t += dt

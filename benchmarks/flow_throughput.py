@@ -1,0 +1,201 @@
+"""Flow solver speed: particle updates per second of the full MPM step, and memory.
+
+A full step is what ``FlowSimulation.step`` does: P2G into per-thread grids and their
+sum, grid update (gravity, centrifugal, Coriolis, walls with friction), G2P with
+advection, exact wall projection and the Mohr-Coulomb stress update, plus the re-sort
+every 20 steps. Cases: the default Tote at 40 % fill in 3-D at three cell sizes
+(about 1e4 to 1e6 particles, 8 per cell) and the 2-D calibration drum, each measured in
+the turning phase (gravity rotating, Coriolis on). Each kernel is also timed alone.
+
+Memory per particle is the particle arrays' bytes (positions, velocities, affine and
+velocity-gradient matrices, stress, volumes, masses, colour) divided by the count; the
+background grid (per-thread copies included) is reported beside it.
+
+Run: ``python benchmarks/flow_throughput.py`` (about 2 minutes on 2 cores). Writes
+``benchmarks/results/flow_throughput.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ["NUMBA_NUM_THREADS"] = "2"
+
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+from _common import (  # noqa: E402
+    RESULTS,
+    best_of,
+    echo,
+    machine,
+    machine_line,
+    table,
+    wait_for_quiet,
+    write_atomic,
+    write_json,
+)
+
+from blendxr.flow import kernels as mpm  # noqa: E402
+from blendxr.flow import mohr_coulomb as mc  # noqa: E402
+from blendxr.flow.solver import FlowSimulation  # noqa: E402
+from blendxr.flow.walls import project_into_vessel  # noqa: E402
+
+STEPS = 40  # steps per timed run
+
+
+def tote(cell):
+    return {
+        "name": f"tote-40-{cell * 1000:g}mm",
+        "vessel": {"kind": "tote", "ndim": 3},
+        "operation": {"rpm": 10.0},
+        "fill": {"fraction": 0.4},
+        "flow": {"cell": cell, "phases": 12},
+        "solver": {"settle_time": 0.0, "revolutions": 2},
+    }
+
+
+def drum(cell):
+    return {
+        "name": f"drum-2d-{cell * 1000:g}mm",
+        "vessel": {"kind": "drum", "ndim": 2, "diameter": 0.15},
+        "operation": {"rpm": 3.26},
+        "fill": {"fraction": 0.32},
+        "flow": {"cell": cell},
+        "solver": {"settle_time": 0.0, "revolutions": 2},
+    }
+
+
+CASES = [("tote-3d", tote, c) for c in (0.015, 0.0075, 0.005)] + [
+    ("drum-2d", drum, c) for c in (0.0025, 0.001)
+]
+
+
+def particle_bytes(sim) -> int:
+    p = sim.particles
+    arrays = [getattr(p, n) for n in p.FIELDS] + [p.codes, p.active]
+    return sum(a.nbytes for a in arrays)
+
+
+def kernel_times(sim, dt) -> dict:
+    """Milliseconds per call of each part of the step (fastest of 5)."""
+    p, g = sim.particles, sim.grid
+    three = sim.ndim == 3
+    inv_h = 1.0 / g.h
+    gravity, omega, damping = sim._body(sim.t)
+    shape = np.asarray(g.shape, np.int64)
+    args = sim.material.return_arguments()
+    parts = {
+        "sort": lambda: mpm.sort_by_cell(p.x, g.origin, inv_h, shape),
+        "p2g": lambda: (mpm.p2g_3d if three else mpm.p2g_2d)(
+            p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt,
+            g.thread_m, g.thread_p, sim.starts,
+        ),
+        "reduce": lambda: (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
+            g.thread_m, g.thread_p, g.mass, g.momentum
+        ),
+        "grid": lambda: (mpm.grid_update_3d if three else mpm.grid_update_2d)(
+            g.mass, g.momentum, g.velocity, g.origin, g.h, dt, gravity, omega, damping,
+            g.node_sdf, g.node_normal, 0.324, g.h,
+        ),
+        "g2p": lambda: (mpm.g2p_3d if three else mpm.g2p_2d)(
+            p.x, p.v, p.C, p.vol, p.J, g.velocity, g.origin, inv_h, 0.0,
+            g.inside, g.node_normal, p.L,
+        ),
+        "project": lambda: project_into_vessel(
+            sim.vessel.kind, sim.vessel.params, p.x, p.v, 1e-6, sim.starts, g.scratch,
+            g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
+        ),
+        "stress": lambda: mc.update_stresses(p.stress, p.L, p.active, dt, *args, p.codes),
+    }  # fmt: skip
+    out = {}
+    for name, fn in parts.items():
+        best = np.inf
+        for _ in range(5):
+            started = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - started)
+        out[name] = best * 1e3
+    return out
+
+
+def measure(label, build, cell) -> dict:
+    sim = FlowSimulation(build(cell))
+    # turning, with gravity on, from the filled state (a few steps seat the bed)
+    sim.run(max_steps=10, progress=False)
+    dt = sim.stable_dt()
+
+    def run():
+        for _ in range(STEPS):
+            sim.step(dt)
+
+    timed = best_of(run, min_runs=2, max_runs=4, budget_s=60.0)
+    n = sim.particles.count
+    rate = n * STEPS / timed["wall_s"]
+    return {
+        "case": label,
+        "cell_m": cell,
+        "particles": n,
+        "grid_nodes": int(np.prod(sim.grid.shape)),
+        "steps": STEPS,
+        "wall_s": timed["wall_s"],
+        "particle_updates_per_s": rate,
+        "ms_per_step": timed["wall_s"] / STEPS * 1e3,
+        "kernels_ms": kernel_times(sim, dt),
+        "bytes_per_particle": particle_bytes(sim) / n,
+        "grid_mib": sim.grid.nbytes / 2**20,
+        "dt_s": dt,
+        "contention": timed["contention"],
+    }
+
+
+def main() -> None:
+    quiet = wait_for_quiet()
+    info = machine()
+    info["quiet_wait"] = quiet
+    echo(f"machine: {machine_line(info)}")
+    started = time.perf_counter()
+    FlowSimulation(tote(0.03)).run(max_steps=25, progress=False)  # compile
+    FlowSimulation(drum(0.01)).run(max_steps=25, progress=False)
+    echo(f"compile {time.perf_counter() - started:.1f} s")
+    rows = []
+    for label, build, cell in CASES:
+        r = measure(label, build, cell)
+        rows.append(r)
+        echo(
+            f"{label} cell {cell * 1000:g} mm: {r['particles']} particles, "
+            f"{r['particle_updates_per_s'] / 1e6:.2f} M/s, {r['ms_per_step']:.2f} ms/step"
+        )
+    headers = ["case", "cell mm", "particles", "M updates/s", "ms/step", "B/particle", "grid MiB"]
+    headers += [f"{k} ms" for k in rows[0]["kernels_ms"]]
+    body = [
+        [
+            r["case"],
+            f"{r['cell_m'] * 1000:g}",
+            r["particles"],
+            f"{r['particle_updates_per_s'] / 1e6:.2f}",
+            f"{r['ms_per_step']:.2f}",
+            f"{r['bytes_per_particle']:.0f}",
+            f"{r['grid_mib']:.1f}",
+        ]
+        + [f"{v:.2f}" for v in r["kernels_ms"].values()]
+        for r in rows
+    ]
+    text = table(headers, body)
+    echo()
+    echo(text)
+    md = (
+        "<!-- written by benchmarks/flow_throughput.py -->\n"
+        f"Machine: {machine_line(info)}.\n\n"
+        "Full MPM step (P2G, grid update, G2P, wall projection, Mohr-Coulomb update, "
+        f"re-sort every 20 steps) timed over {STEPS} steps while turning; kernel columns "
+        "are single calls (fastest of 5). Target: >= 8 M particle updates/s on 2 cores.\n\n"
+        + text
+        + "\n"
+    )
+    write_atomic(RESULTS / "flow_throughput.md", md)
+    write_json("flow_throughput", {"machine": info, "steps": STEPS, "results": rows})
+
+
+if __name__ == "__main__":
+    main()
