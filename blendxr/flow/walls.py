@@ -17,7 +17,9 @@ from numba import prange
 
 from ..vessels import sdf_normal
 
-__all__ = ["project_into_vessel"]
+__all__ = ["MAX_PROJECTIONS", "project_into_vessel"]
+
+MAX_PROJECTIONS = 8  # projections per particle and step (one suffices off edges)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -78,13 +80,21 @@ def project_into_vessel(kind, params, x, v, skin, starts, scratch, node_sdf, ori
             if phi <= 0.0:
                 continue
             count += 1
-            vn = 0.0
-            for a in range(d):
-                x[p, a] -= (phi + skin) * normal[a]
-                vn += v[p, a] * normal[a]
-            if vn > 0.0:
+            # a distance that is only a lower bound outside (the tote's planes) may leave
+            # the particle outside another face: repeat, as alternating projections onto
+            # the faces of a convex vessel converge
+            for _ in range(MAX_PROJECTIONS):
+                vn = 0.0
                 for a in range(d):
-                    v[p, a] -= vn * normal[a]
+                    x[p, a] -= (phi + skin) * normal[a]
+                    vn += v[p, a] * normal[a]
+                if vn > 0.0:
+                    for a in range(d):
+                        v[p, a] -= vn * normal[a]
+                z = x[p, 2] if d == 3 else 0.0
+                phi = sdf_normal(kind, params, x[p, 0], x[p, 1], z, normal)
+                if phi <= 0.0:
+                    break
         normal[3] = count
     total = 0
     for t in range(tasks):
