@@ -626,9 +626,10 @@ class FlowSimulation:
             window = self.period
         else:
             window = s.average_window or 0.25 * s.duration
-        # about 12 samples per phase bin, and at least 120 per window
+        # at least 200 samples per phase bin: the averages of an intermittent granular
+        # flow need many (a deposit costs about 1 ns per particle, a step 100 or more)
         per_window = window / dt
-        return max(1, int(min(per_window / max(s.phases, 1) / 12, per_window / 120)))
+        return max(1, int(per_window / max(s.phases, 1) / 200))
 
     def run(
         self,
