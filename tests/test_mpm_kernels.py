@@ -425,3 +425,18 @@ def test_particles_in_range_finds_the_first_offender(d):
     edge = x.copy()
     edge[4] = ORIGIN[d] + (0.5 + 1e-9) * H  # just above the lowest position allowed
     assert kernels.particles_in_range(edge, ORIGIN[d], INV_H, shape) == -1
+
+
+def test_bulk_viscosity_matches_twin_and_leaves_isochoric_motion_alone():
+    rng = np.random.default_rng(11)
+    n = 200
+    stress = rng.normal(size=(n, 3, 3))
+    stress = stress + stress.transpose(0, 2, 1)
+    L = rng.normal(size=(n, 3, 3))
+    out = np.empty_like(stress)
+    kernels.add_bulk_viscosity(stress, L, out, 3.0, 0.7)
+    np.testing.assert_allclose(out, reference.add_bulk_viscosity(stress, L, 3.0, 0.7), atol=1e-12)
+    # shear and spin (trace-free L) change nothing: no volume change, no viscous pressure
+    L -= np.trace(L, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3.0
+    kernels.add_bulk_viscosity(stress, L, out, 3.0, 0.7)
+    np.testing.assert_allclose(out, stress, rtol=0, atol=1e-12)

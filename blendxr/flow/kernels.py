@@ -67,6 +67,7 @@ from numba import njit, prange
 
 __all__ = [
     "GRID_MASS_TINY",
+    "add_bulk_viscosity",
     "chunk_starts",
     "deposit_2d",
     "deposit_3d",
@@ -1090,3 +1091,34 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
         acc_mom[i, j, k, 0] += vp * v[p, 0]
         acc_mom[i, j, k, 1] += vp * v[p, 1]
         acc_mom[i, j, k, 2] += vp * v[p, 2]
+
+
+@njit(**_JIT)
+def add_bulk_viscosity(stress, L, out, linear, quadratic):
+    """Stress for the momentum update: Cauchy stress plus a bulk-viscous pressure.
+
+    ``out = stress + rho h (b1 c_p + b2**2 h max(-tr D, 0)) tr D I`` with ``linear`` =
+    rho h b1 c_p and ``quadratic`` = rho (b2 h)**2: the linear and quadratic bulk
+    viscosity of explicit dynamics codes. Elastic waves in the rigidly moving parts of a
+    bed are otherwise undamped (neither the material nor APIC dissipates them) and ring
+    on for whole revolutions; the viscous pressure acts only on volume change, so shear
+    flow and rigid motion are untouched. It is not stored in the stress history.
+
+    Parameters
+    ----------
+    stress, L : ndarray of float64, shape (N, 3, 3)
+        Cauchy stress [Pa] and velocity gradient [1/s].
+    out : ndarray of float64, shape (N, 3, 3)
+        Receives the stress P2G should use.
+    linear, quadratic : float
+        rho h b1 c_p [Pa s] and rho (b2 h)**2 [kg/m].
+    """
+    for p in prange(stress.shape[0]):
+        rate = L[p, 0, 0] + L[p, 1, 1] + L[p, 2, 2]
+        q = linear * rate
+        if rate < 0.0:
+            q += quadratic * (-rate) * rate
+        for i in range(3):
+            for j in range(3):
+                out[p, i, j] = stress[p, i, j]
+            out[p, i, i] += q

@@ -15,6 +15,7 @@ import numpy as np
 from .kernels import GRID_MASS_TINY
 
 __all__ = [
+    "add_bulk_viscosity",
     "deposit",
     "g2p",
     "grid_update",
@@ -170,3 +171,10 @@ def particles_in_range(x, origin, inv_h, shape):
     ok = np.all((f >= 0.5) & (f < np.array(shape) - 1.5), axis=1)
     bad = np.flatnonzero(~ok)
     return int(bad[0]) if bad.size else -1
+
+
+def add_bulk_viscosity(stress, L, linear, quadratic):
+    """NumPy twin of :func:`blendxr.flow.kernels.add_bulk_viscosity` (returns a new array)."""
+    rate = np.trace(L, axis1=1, axis2=2)
+    q = linear * rate + quadratic * np.minimum(rate, 0.0) * np.abs(rate)
+    return stress + q[:, None, None] * np.eye(3)

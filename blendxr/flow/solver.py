@@ -93,6 +93,8 @@ class Material:
     wall_friction: float = 0.324
     stiffness_scaling: float = 1.0
     tension_cutoff: bool = True
+    bulk_viscosity_linear: float = 0.06
+    bulk_viscosity_quadratic: float = 1.2
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Material:
@@ -107,6 +109,16 @@ class Material:
             wall_friction=m["wall_friction"],
             stiffness_scaling=s["stiffness_scaling"],
             tension_cutoff=s["tension_cutoff"],
+            bulk_viscosity_linear=s["bulk_viscosity_linear"],
+            bulk_viscosity_quadratic=s["bulk_viscosity_quadratic"],
+        )
+
+    def bulk_viscosity(self, h: float) -> tuple[float, float]:
+        """(rho h b1 c_p, rho (b2 h)**2) for a cell h."""
+        rho = self.density
+        return (
+            rho * h * self.bulk_viscosity_linear * self.p_wave_speed,
+            rho * (self.bulk_viscosity_quadratic * h) ** 2,
         )
 
     @property
@@ -150,6 +162,7 @@ class Particles:
         self.C = np.zeros((n, d, d))
         self.L = np.zeros((n, 3, 3))
         self.stress = np.zeros((n, 3, 3))
+        self.stress_p2g = np.zeros((n, 3, 3))  # stress + bulk viscosity, rebuilt each step
         self.vol0 = np.full(n, float(volume))
         self.vol = self.vol0.copy()
         self.J = np.ones(n)
@@ -173,6 +186,7 @@ class Particles:
         for name in self.FIELDS:
             setattr(self, name, np.ascontiguousarray(arrays[name]))
         n = self.x.shape[0]
+        self.stress_p2g = np.zeros((n, 3, 3))
         self.codes = np.zeros(n, np.int8)
         self.active = np.ones(n, np.uint8)
 
@@ -388,6 +402,7 @@ class FlowSimulation:
         self.particles = Particles(positions, volume, self.material.density)
         self.particles.colour[:] = self._colour(positions)
         self.grid = BackgroundGrid(self.vessel, s.cell, _threads())
+        self.bulk = self.material.bulk_viscosity(s.cell)
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
@@ -481,8 +496,9 @@ class FlowSimulation:
         gravity, omega, damping = self._body(self.t + 0.5 * dt)
         three = self.ndim == 3
         inv_h = 1.0 / g.h
+        mpm.add_bulk_viscosity(p.stress, p.L, p.stress_p2g, *self.bulk)
         (mpm.p2g_3d if three else mpm.p2g_2d)(
-            p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt,
+            p.x, p.v, p.C, p.mass, p.vol, p.stress_p2g, g.origin, inv_h, dt,
             g.thread_m, g.thread_p, self.starts,
         )  # fmt: skip
         (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
@@ -748,6 +764,19 @@ def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
     return ds
 
 
+def _lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
+    """Phase-binned vessel-frame velocities seen from the lab: R(theta_k) (v + w x r)."""
+    out = np.empty_like(vel)
+    centres = np.stack(np.meshgrid(*sim.out_axes, indexing="ij"), axis=-1)
+    for k in range(vel.shape[0]):
+        u = vel[k].copy()
+        u[..., 0] -= sim.omega * centres[..., 1]
+        u[..., 1] += sim.omega * centres[..., 0]
+        rotation = _rotation(2.0 * math.pi * k / vel.shape[0], sim.ndim)
+        out[k] = u @ rotation.T
+    return out
+
+
 def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
     s = sim.settings
     fill, vel, raw = sim.last.fields()
@@ -774,12 +803,21 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
     }
     if sim.previous.samples.min() > 0:
         fill_p, vel_p, _ = sim.previous.fields()
-        for name, value in periodicity(vel_p, vel, fill_p, fill).items():
+        if sim.lab_frame or s.rpm == 0:
+            lab_p, lab = vel_p, vel
+        else:
+            lab_p, lab = (_lab_velocities(sim, v) for v in (vel_p, vel))
+            for name, value in periodicity(vel_p, vel, fill_p, fill).items():
+                attrs[f"periodicity_vessel_frame_{name}"] = value
+        for name, value in periodicity(lab_p, lab, fill_p, fill).items():
             attrs[f"periodicity_{name}"] = value
         attrs["periodicity_definition"] = (
             "eq. (30) between the last two recorded revolutions (rpm = 0: the last two "
-            "averaging windows), cells with fill > 0.5 in both and |v| above 5 % of the "
-            "component's largest; *_norm: sum |dv| / sum |v| over the same cells"
+            "averaging windows) on lab-frame velocities (the frame of the paper's fixed "
+            "Eulerian mesh; periodicity_vessel_frame_*: the same on the stored "
+            "vessel-frame velocities, which lack the rigid rotation and are stricter), "
+            "cells with fill > 0.5 in both and |v| above 5 % of the component's largest; "
+            "*_norm: sum |dv| / sum |v| over the same cells"
         )
     axes = dict(zip("xyz", sim.out_axes, strict=False))
     phases = np.arange(s.phases) / s.phases
