@@ -144,9 +144,8 @@ def main() -> None:
     for fraction in (0.4, 0.6):
         r = periodicity_case(fraction)
         periodic.append(r)
-        echo(
-            f"fill {fraction}: {r['particles']} particles, {r['wall_s']:.0f} s, {r['periodicity_lab']}"
-        )
+        lab = r["periodicity_lab"]
+        echo(f"fill {fraction}: {r['particles']} particles, {r['wall_s']:.0f} s, {lab}")
     costs = [cost_case(1.0), cost_case(DEFAULT_SCALING, full=args.full)]
     for r in costs:
         echo(f"7.5 mm, E/{r['stiffness_scaling']:g}: {r['wall_s'] / 60:.1f} min ({r})")
