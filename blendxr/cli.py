@@ -12,7 +12,8 @@ from pathlib import Path
 
 __all__ = ["main"]
 
-DEFAULT_MIX_SCENE = "drum-2d"
+DEFAULT_MIX_SCENE = "drum-2d"  # an analytic flow: mixing alone, in seconds
+DEFAULT_RUN_SCENE = "tote-small"  # flow solver + mixing + report, in minutes
 
 
 def _flow_for_scene(scene, flow_path=None, quiet=False, checkpoint=None):
@@ -197,7 +198,7 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_mix)
 
     p = sub.add_parser("run", help="flow + mixing + report for a scene")
-    p.add_argument("scene", nargs="?", default=DEFAULT_MIX_SCENE)
+    p.add_argument("scene", nargs="?", default=DEFAULT_RUN_SCENE)
     add_mix_arguments(p)
     p.set_defaults(func=_cmd_mix, save_flow=True)
 

@@ -101,3 +101,15 @@ def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
     assert main(["flow", str(scene), "-o", str(tmp_path), "-q"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "material.density" in err
+
+
+def test_run_without_a_scene_solves_the_default_tote_and_mixes(tmp_path, capsys):
+    """The README's first command (mixing shortened): flow solver + mixing + report."""
+    status = main(["run", "-o", str(tmp_path), "--revolutions", "1", "--cells", "30", "-q"])
+    assert status == 0
+    flow = bx.open_flow(tmp_path / "flow.nc")
+    assert bx.load_scene(flow.attrs["scene"]).name == "tote-small"
+    assert flow.attrs["frame"] == "vessel" and flow.sizes["rev_phase"] == 12
+    bx.validate(bx.open_mixing(tmp_path / "mixing.nc"))
+    assert (tmp_path / "mixing.png").stat().st_size > 0
+    assert "RSD" in capsys.readouterr().out
