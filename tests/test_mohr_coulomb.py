@@ -468,3 +468,34 @@ def test_yield_value_and_principal_stresses():
     assert mc.yield_value(apex_stress(MATERIALS["table1"]) * np.eye(3), sphi, cphi, c) == (
         pytest.approx(0.0, abs=1e-12)
     )
+
+
+@pytest.mark.parametrize(
+    "spectrum",
+    ["distinct", "double-root", "near-double", "near-hydrostatic", "rank-one", "diagonal"],
+)
+def test_closed_form_eigensolver_is_accurate_to_round_off(spectrum):
+    # the closed form must match LAPACK to round-off of |A| also where the cubic's roots
+    # are ill-conditioned (repeated and nearly repeated eigenvalues)
+    rng = np.random.default_rng(21)
+    for _ in range(400):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        d = {
+            "distinct": rng.normal(size=3) * 1e3,
+            "double-root": np.array([-2e3, -2e3, -5e2]),
+            "near-double": np.array([-2e3, -2e3 * (1 + 10.0 ** rng.uniform(-15, -4)), -5e2]),
+            "near-hydrostatic": -1e4 + rng.normal(size=3) * 10.0 ** rng.uniform(-10, 0),
+            "rank-one": np.array([0.0, 0.0, rng.normal()]),
+            "diagonal": rng.normal(size=3),
+        }[spectrum]
+        a = q @ np.diag(d) @ q.T if spectrum != "diagonal" else np.diag(d)
+        a = 0.5 * (a + a.T)
+        out = mc._eigh3((a[0, 0], a[1, 1], a[2, 2], a[0, 1], a[0, 2], a[1, 2]))
+        values = np.array(out[:3])
+        vectors = np.array(out[3:]).reshape(3, 3).T  # columns
+        scale = np.abs(a).max()
+        np.testing.assert_allclose(
+            np.sort(values), np.linalg.eigvalsh(a), rtol=0, atol=1e-14 * scale
+        )
+        np.testing.assert_allclose(vectors.T @ vectors, np.eye(3), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(a @ vectors, vectors * values, rtol=0, atol=1e-14 * scale)

@@ -68,10 +68,12 @@ One step of :func:`update_stress`
 Eigen-decomposition without allocation: when σxz = σyz = 0 after the elastic trial (always
 the case in plane strain, where W and D have no z coupling, since the Cayley rotation then
 keeps exact zeros) σzz is principal and the in-plane 2×2 block is decomposed in closed
-form; otherwise a cyclic Jacobi iteration on scalars gives eigenvalues and eigenvectors of
-the 3×3 tensor, skipped when bounds from the invariants p and J2 already prove the trial
-elastic. The corrected stress is σ_t + Σ_k (σk_new − σk_trial) v_k v_kᵀ, so an
-unchanged principal stress costs no round-off.
+form; otherwise a closed-form decomposition of the 3×3 tensor (the cubic's most separated
+root, its vector from cross products, one exact 2×2 rotation for the other pair; see
+:func:`_eigh3`) gives eigenvalues and eigenvectors to round-off without iterating,
+skipped when bounds from the invariants p and J2 already prove the trial elastic. The
+corrected stress is σ_t + Σ_k (σk_new − σk_trial) v_k v_kᵀ, so an unchanged principal
+stress costs no round-off.
 
 Return codes (:data:`ELASTIC` ... :data:`TENSION_CAP`; :data:`INACTIVE` marks skipped
 particles in :func:`update_stresses`) let tests and diagnostics count what happened.
@@ -94,6 +96,7 @@ __all__ = [
     "elastic_constants",
     "p_wave_speed",
     "principal_stresses",
+    "stress_step",
     "update_stress",
     "update_stresses",
     "yield_value",
@@ -106,13 +109,6 @@ INACTIVE = -1
 
 # error_model="numpy": no zero-division checks in the hot path (no division can see a zero).
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy"}
-
-#: Jacobi rotations stop once an off-diagonal entry is below this fraction of the tensor's
-#: size: far below round-off of the eigenvalues, reached in a few quadratically
-#: converging sweeps.
-_JACOBI_TINY = 2.0**-60
-_JACOBI_SWEEPS = 32
-
 
 # --------------------------------------------------------------------------------------
 # Elastic constants
@@ -182,12 +178,15 @@ def _write(sig, s):
 
 
 @njit(**_JIT)
-def _spin_rotation(L, dt):
-    """Hughes–Winget rotation Q = (I − Ω)⁻¹ (I + Ω), Ω = dt skew(L) / 2, row by row."""
+def _spin_rotation(l, dt):
+    """Hughes–Winget rotation Q = (I − Ω)⁻¹ (I + Ω), Ω = dt skew(L) / 2, row by row.
+
+    ``l`` is the velocity gradient as a 9-tuple, row by row.
+    """
     h = 0.25 * dt
-    w1 = h * (L[2, 1] - L[1, 2])
-    w2 = h * (L[0, 2] - L[2, 0])
-    w3 = h * (L[1, 0] - L[0, 1])
+    w1 = h * (l[7] - l[5])
+    w2 = h * (l[2] - l[6])
+    w3 = h * (l[3] - l[1])
     ww = w1 * w1 + w2 * w2 + w3 * w3
     k = 2.0 / (1.0 + ww)
     # Q = I + k (Ω + ω ωᵀ − |ω|² I); the diagonal keeps an exact 1 for a spin about one axis.
@@ -230,74 +229,181 @@ def _rotate(q, s):
 
 
 @njit(**_JIT)
-def _elastic_increment(s, L, dt, lam, G):
-    """σ + dt (λ tr(D) I + 2 G D) with D = sym(L)."""
-    iso = dt * lam * (L[0, 0] + L[1, 1] + L[2, 2])
+def _elastic_increment(s, l, dt, lam, G):
+    """σ + dt (λ tr(D) I + 2 G D) with D = sym(L), L the 9-tuple ``l`` row by row."""
+    iso = dt * lam * (l[0] + l[4] + l[8])
     g2 = 2.0 * G * dt
     gs = G * dt  # 2 G D_ij = G (L_ij + L_ji)
     return (
-        s[0] + iso + g2 * L[0, 0],
-        s[1] + iso + g2 * L[1, 1],
-        s[2] + iso + g2 * L[2, 2],
-        s[3] + gs * (L[0, 1] + L[1, 0]),
-        s[4] + gs * (L[0, 2] + L[2, 0]),
-        s[5] + gs * (L[1, 2] + L[2, 1]),
+        s[0] + iso + g2 * l[0],
+        s[1] + iso + g2 * l[4],
+        s[2] + iso + g2 * l[8],
+        s[3] + gs * (l[1] + l[3]),
+        s[4] + gs * (l[2] + l[6]),
+        s[5] + gs * (l[5] + l[7]),
     )
 
 
 @njit(**_JIT)
-def _jacobi_pair(app, aqq, apq, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2, tiny):
-    """One Jacobi rotation annihilating a_pq (r the third index; v_p, v_q eigenvector columns)."""
-    if abs(apq) <= tiny:
-        return app, aqq, 0.0, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2
-    theta = (aqq - app) / (2.0 * apq)
-    if abs(theta) > 1e150:  # θ² would overflow; t → 1/(2θ)
-        t = 0.5 / theta
-    else:
-        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-        if theta < 0.0:
-            t = -t
-    c = 1.0 / math.sqrt(t * t + 1.0)
-    s = t * c
+def _cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(**_JIT)
+def _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha):
+    """Unit eigenvector of a symmetric 3×3 for its most separated eigenvalue ``alpha``.
+
+    The rows of A − αI span the plane orthogonal to the eigenvector; the largest of their
+    three cross products is the best-conditioned normal of that plane.
+    """
+    m00, m11, m22 = a00 - alpha, a11 - alpha, a22 - alpha
+    x0, x1, x2 = _cross(m00, a01, a02, a01, m11, a12)
+    y0, y1, y2 = _cross(m00, a01, a02, a02, a12, m22)
+    z0, z1, z2 = _cross(a01, m11, a12, a02, a12, m22)
+    nx = x0 * x0 + x1 * x1 + x2 * x2
+    ny = y0 * y0 + y1 * y1 + y2 * y2
+    nz = z0 * z0 + z1 * z1 + z2 * z2
+    if ny > nx:
+        x0, x1, x2, nx = y0, y1, y2, ny
+    if nz > nx:
+        x0, x1, x2, nx = z0, z1, z2, nz
+    if not nx > 0.0:  # A = αI: every vector is an eigenvector
+        return 1.0, 0.0, 0.0
+    inv = 1.0 / math.sqrt(nx)
+    return x0 * inv, x1 * inv, x2 * inv
+
+
+@njit(**_JIT)
+def _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2):
     return (
-        app - t * apq,
-        aqq + t * apq,
-        0.0,
-        c * arp - s * arq,
-        s * arp + c * arq,
-        c * vp0 - s * vq0,
-        c * vp1 - s * vq1,
-        c * vp2 - s * vq2,
-        s * vp0 + c * vq0,
-        s * vp1 + c * vq1,
-        s * vp2 + c * vq2,
+        a00 * u0 + a01 * u1 + a02 * u2,
+        a01 * u0 + a11 * u1 + a12 * u2,
+        a02 * u0 + a12 * u1 + a22 * u2,
     )
+
+
+#: x(r) = cos(acos(r) / 3) on [0, 1], the largest root of 4x³ − 3x = r: a degree-7
+#: least-squares (Chebyshev) fit, largest error 2.8e-8; one Newton step on the cubic
+#: (f' = 12x² − 3 ≥ 6 there, so the root is simple) brings it to 1.4e-15.
+_CUBIC_ROOT_FIT = (
+    0.866025431808084,
+    0.166664556427006,
+    -0.048073327457577794,
+    0.024379220194368757,
+    -0.014271708953769615,
+    0.007659054070378099,
+    -0.002930990987853107,
+    0.0005477855432569341,
+)
+
+
+@njit(**_JIT)
+def _largest_cubic_root(r):
+    """The largest root of 4x³ − 3x = r for r in [0, 1] (x in [√3/2, 1]), no acos or cos."""
+    c = _CUBIC_ROOT_FIT
+    x = c[7]
+    for k in range(6, -1, -1):
+        x = x * r + c[k]
+    return x - (4.0 * x * x * x - 3.0 * x - r) / (12.0 * x * x - 3.0)
+
+
+#: Matrices whose largest entry is outside [2^-300, 2^300] are rescaled first, so that
+#: p³ can neither under- nor overflow; stresses in Pa never are.
+_EIG_SMALL = 2.0**-300
+_EIG_LARGE = 2.0**300
 
 
 @njit(**_JIT)
 def _eigh3(s):
     """Eigenvalues (e0, e1, e2) and eigenvector columns v0, v1, v2 of a symmetric 3×3.
 
-    Cyclic Jacobi on scalars. Returns a 12-tuple: e0, e1, e2, then v0, v1, v2 (3 each).
+    Closed form, no iteration: the most separated eigenvalue from the trigonometric
+    solution of the characteristic cubic (the largest when det of the scaled deviator is
+    ≥ 0, else the smallest: it lies at least √3 p from the other two, p² = tr(B²)/6; the
+    cube root of the cubic is a polynomial fit plus a Newton step, not acos and cos), its
+    eigenvector from the rows of A − αI, then the other two from the exact 2×2
+    diagonalisation in the plane orthogonal to it. The cubic's roots lose digits next to
+    a double root, so only the far one is taken from it, and all eigenvalues come from
+    the orthonormal vectors (a Rayleigh quotient and the exact 2×2 eigenvalues): accurate
+    to round-off of |A|, also for repeated eigenvalues (the pair is resolved by the 2×2
+    step, which is exact for any gap). Tested against LAPACK.
+
+    Returns a 12-tuple: e0, e1, e2 (unsorted), then v0, v1, v2 (3 each).
     """
     a00, a11, a22, a01, a02, a12 = s
-    tiny = _JACOBI_TINY * (abs(a00) + abs(a11) + abs(a22) + abs(a01) + abs(a02) + abs(a12))
-    x0, x1, x2 = 1.0, 0.0, 0.0  # column v0
-    y0, y1, y2 = 0.0, 1.0, 0.0  # column v1
-    z0, z1, z2 = 0.0, 0.0, 1.0  # column v2
-    for _ in range(_JACOBI_SWEEPS):
-        if abs(a01) <= tiny and abs(a02) <= tiny and abs(a12) <= tiny:
-            break
-        a00, a11, a01, a02, a12, x0, x1, x2, y0, y1, y2 = _jacobi_pair(
-            a00, a11, a01, a02, a12, x0, x1, x2, y0, y1, y2, tiny
+    scale = max(abs(a00), abs(a11), abs(a22), abs(a01), abs(a02), abs(a12))
+    if not scale > 0.0:
+        return a00, a11, a22, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    unscale = 1.0
+    if scale < _EIG_SMALL or scale > _EIG_LARGE:
+        unscale = scale
+        inv = 1.0 / scale
+        a00, a11, a22, a01, a02, a12 = (
+            a00 * inv, a11 * inv, a22 * inv, a01 * inv, a02 * inv, a12 * inv
+        )  # fmt: skip
+    q = (a00 + a11 + a22) * (1.0 / 3.0)
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) * (
+        1.0 / 6.0
+    )
+    alpha = q
+    if p2 > 0.0:
+        p = math.sqrt(p2)
+        det_b = (
+            b00 * (b11 * b22 - a12 * a12)
+            - a01 * (a01 * b22 - a12 * a02)
+            + a02 * (a01 * a12 - b11 * a02)
         )
-        a00, a22, a02, a01, a12, x0, x1, x2, z0, z1, z2 = _jacobi_pair(
-            a00, a22, a02, a01, a12, x0, x1, x2, z0, z1, z2, tiny
-        )
-        a11, a22, a12, a01, a02, y0, y1, y2, z0, z1, z2 = _jacobi_pair(
-            a11, a22, a12, a01, a02, y0, y1, y2, z0, z1, z2, tiny
-        )
-    return a00, a11, a22, x0, x1, x2, y0, y1, y2, z0, z1, z2
+        r = min(1.0, max(-1.0, 0.5 * det_b / (p2 * p)))
+        # r >= 0: the largest eigenvalue q + 2p x(r) is the far one; r < 0: the smallest,
+        # q - 2p x(-r) (the cubic is odd)
+        alpha = q + math.copysign(2.0 * p * _largest_cubic_root(abs(r)), r)
+    e0, e1, e2 = _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha)
+    # an orthonormal pair (u, w) spanning the plane orthogonal to e
+    if abs(e0) > abs(e1):
+        k = 1.0 / math.sqrt(e0 * e0 + e2 * e2)
+        u0, u1, u2 = -e2 * k, 0.0, e0 * k
+    else:
+        k = 1.0 / math.sqrt(e1 * e1 + e2 * e2)
+        u0, u1, u2 = 0.0, e2 * k, -e1 * k
+    w0, w1, w2 = _cross(e0, e1, e2, u0, u1, u2)
+    au0, au1, au2 = _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2)
+    aw0, aw1, aw2 = _sym_apply(a00, a11, a22, a01, a02, a12, w0, w1, w2)
+    ae0, ae1, ae2 = _sym_apply(a00, a11, a22, a01, a02, a12, e0, e1, e2)
+    m00 = u0 * au0 + u1 * au1 + u2 * au2
+    m11 = w0 * aw0 + w1 * aw1 + w2 * aw2
+    m01 = 0.5 * (u0 * aw0 + u1 * aw1 + u2 * aw2 + w0 * au0 + w1 * au1 + w2 * au2)
+    # the 2×2 block [[m00, m01], [m01, m11]]: eigenvalues mean ± radius; the vector of
+    # the larger one is (m01, big - m00) or (big - m11, m01), whichever is longer (the
+    # other may be all cancellation)
+    mean = 0.5 * (m00 + m11)
+    radius = math.hypot(0.5 * (m00 - m11), m01)
+    big = mean + radius
+    c0, c1 = m01, big - m00
+    d0, d1 = big - m11, m01
+    nc = c0 * c0 + c1 * c1
+    nd = d0 * d0 + d1 * d1
+    if nd > nc:
+        c0, c1, nc = d0, d1, nd
+    if nc > 0.0:
+        k = 1.0 / math.sqrt(nc)
+        c0, c1 = c0 * k, c1 * k
+    else:  # m = mean I: any pair
+        c0, c1 = 1.0, 0.0
+    return (
+        unscale * (e0 * ae0 + e1 * ae1 + e2 * ae2),
+        unscale * big,
+        unscale * (mean - radius),
+        e0,
+        e1,
+        e2,
+        c0 * u0 + c1 * w0,
+        c0 * u1 + c1 * w1,
+        c0 * u2 + c1 * w2,
+        c0 * w0 - c1 * u0,
+        c0 * w1 - c1 * u1,
+        c0 * w2 - c1 * u2,
+    )
 
 
 @njit(**_JIT)
@@ -527,7 +633,7 @@ def _invariant_bounds(s, sin_phi, cos_phi, cohesion):
 
 @njit(**_JIT)
 def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
-    """Return of a general symmetric stress through a Jacobi eigen-decomposition."""
+    """Return of a general symmetric stress through its eigen-decomposition."""
     # Most of a resting bed is clearly elastic: skip the eigen-decomposition there.
     f_bound, s1_bound = _invariant_bounds(s, sin_phi, cos_phi, cohesion)
     if f_bound <= 0.0 and (tension_cutoff <= 0.0 or s1_bound <= tension_cutoff):
@@ -558,6 +664,22 @@ def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cuto
 # --------------------------------------------------------------------------------------
 # Public kernels
 # --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def stress_step(s, l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """One step of the stress update on scalars, for kernels that hold L in registers.
+
+    As :func:`update_stress`, with the symmetric stress as the 6-tuple
+    (σxx, σyy, σzz, σxy, σxz, σyz) and the velocity gradient as the 9-tuple
+    (L00, L01, L02, L10, ..., L22). Returns ``(new stress 6-tuple, code)``.
+    """
+    lam = K - 2.0 * G / 3.0
+    s = _rotate(_spin_rotation(l, dt), s)
+    s = _elastic_increment(s, l, dt, lam, G)
+    if s[4] == 0.0 and s[5] == 0.0:
+        return _return_plane_strain(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
+    return _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
 
 
 @njit(**_JIT)
@@ -592,15 +714,10 @@ def update_stress(sig, L, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension
         :data:`ELASTIC` (0), :data:`PLANE` (1), :data:`EDGE_COMPRESSION` (2, σ1 = σ2),
         :data:`EDGE_EXTENSION` (3, σ2 = σ3), :data:`APEX` (4) or :data:`TENSION_CAP` (5).
     """
-    lam = K - 2.0 * G / 3.0
-    s = _rotate(_spin_rotation(L, dt), _read(sig))
-    s = _elastic_increment(s, L, dt, lam, G)
-    if s[4] == 0.0 and s[5] == 0.0:
-        s, code = _return_plane_strain(
-            s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
-        )
-    else:
-        s, code = _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
+    l = (L[0, 0], L[0, 1], L[0, 2], L[1, 0], L[1, 1], L[1, 2], L[2, 0], L[2, 1], L[2, 2])
+    s, code = stress_step(
+        _read(sig), l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+    )
     _write(sig, s)
     return code
 
