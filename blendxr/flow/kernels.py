@@ -4,31 +4,37 @@ Method
 ------
 MLS-MPM (the moving least squares material point method of Hu et al. 2018) with APIC
 affine transfers and quadratic B-spline weights, in the vessel frame. Plain float64 arrays
-in and out; the driver owns the time loop, the constitutive update and all bookkeeping.
+in and out; the driver owns the time loop and all bookkeeping; the constitutive update
+(:mod:`blendxr.flow.mohr_coulomb`, scalar code) is called from inside G2P.
 
 Grid: nodes at ``origin + i*h`` (i = 0 .. n-1 per axis, the same ``h`` on every axis);
 node arrays have shape (nx, ny) in 2-D and (nx, ny, nz) in 3-D, vector node arrays one more
 trailing axis of length d. Particles: positions ``x`` (N, d) [m], velocities ``v`` (N, d)
 [m/s], affine matrices ``C`` (N, d, d) [1/s], masses ``m`` (N) [kg], current volumes
 ``vol`` (N) [m^3], Jacobians ``J`` (N) [1], Cauchy stress ``stress`` (N, 3, 3) [Pa] (always
-3 x 3, tension positive; in 2-D plane strain only the in-plane 2 x 2 block makes forces)
-and velocity gradients ``L`` (N, 3, 3) [1/s]. Pass C-contiguous float64 arrays (int64 for
-``starts``) and Python floats for scalars: other types work but compile again.
+3 x 3, tension positive; in 2-D plane strain only the in-plane 2 x 2 block makes forces).
+In MLS-MPM the affine matrix is the velocity gradient, ``L = C``, so no ``L`` is stored.
+Pass C-contiguous float64 arrays (int64 for ``starts``) and Python floats for scalars:
+other types work but compile again.
 
 One step is
 
 1. :func:`p2g_3d` scatters mass and MLS-MPM momentum
-   ``p_i += w_ip [m_p v_p + (m_p C_p - dt vol_p D^-1 sigma_p)(x_i - x_p)]``,
-   ``D^-1 = 4 / h**2``, into one private grid per thread, and :func:`reduce_grids_3d`
-   sums those (the internal-force impulse is already in the momentum);
+   ``p_i += w_ip [m_p v_p + (m_p C_p - dt vol_p D^-1 (sigma_p + q_p I))(x_i - x_p)]``,
+   ``D^-1 = 4 / h**2``, ``q_p`` the bulk-viscous pressure from ``tr C_p``, into one
+   private grid per thread, and :func:`reduce_grids_3d` sums those (the internal-force
+   impulse is already in the momentum);
 2. :func:`grid_update_3d` turns momentum into velocity and adds gravity, centrifugal,
    Coriolis (an exact rotation), damping and the frictional walls;
-3. :func:`g2p_3d` gathers the particle velocity and affine matrix ``C = D^-1 B`` (also the
-   velocity gradient ``L`` for the stress update), advects, updates ``J`` and ``vol`` and
-   projects escaped particles back onto the wall;
+3. :func:`g2p_3d` gathers the particle velocity and affine matrix ``C = D^-1 B``,
+   advects, updates ``J`` and ``vol`` and updates the stress with ``L = C`` (Jaumann
+   rate, Mohr-Coulomb return), all in one pass over the particles;
 
-the driver then updates the stress from ``L`` (Jaumann rate, Mohr-Coulomb return). The
-``_2d`` kernels are the same in plane strain.
+the driver then puts particles that crossed a wall back with the exact distance
+(:mod:`blendxr.flow.walls`). The ``_2d`` kernels are the same in plane strain.
+Two passes over the whole particle state per step: at 10^5 particles and more the
+particle data (about 250 bytes each) is far larger than the caches, and every pass
+streams it from memory.
 
 Stability (the driver's job)
 ----------------------------
@@ -65,9 +71,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .mohr_coulomb import stress_step
+
 __all__ = [
     "GRID_MASS_TINY",
-    "add_bulk_viscosity",
     "chunk_starts",
     "deposit_2d",
     "deposit_3d",
@@ -123,17 +130,6 @@ def _stencil(f, n):
 
 
 @njit(**_JIT_SERIAL)
-def _cell(f, n):
-    """Cell (base node of the linear stencil) and fraction along one axis, clamped."""
-    b = np.floor(f)
-    if not b >= 0.0:
-        b = 0.0
-    elif b > n - 2:
-        b = float(n - 2)
-    return int(b), f - b
-
-
-@njit(**_JIT_SERIAL)
 def _wall_2d(vx, vy, nx, ny, mu):
     """Frictional wall contact: drop an inward normal velocity, Coulomb-slow the rest."""
     vn = vx * nx + vy * ny
@@ -162,6 +158,24 @@ def _wall_3d(vx, vy, vz, nx, ny, nz, mu):
         return 0.0, 0.0, 0.0
     s = 1.0 - mu * vn / vt
     return tx * s, ty * s, tz * s
+
+
+@njit(**_JIT_SERIAL)
+def _bulk_pressure(rate, bulk):
+    """Bulk-viscous pressure ``q = linear tr(L) + quadratic min(tr(L), 0) |tr(L)|`` [Pa].
+
+    ``bulk = (linear, quadratic)`` with linear = rho h b1 c_p [Pa s] and quadratic =
+    rho (b2 h)**2 [kg/m]: the linear and quadratic bulk viscosity of explicit dynamics
+    codes, added to the stress P2G uses (not to the stress history). Elastic waves in the
+    rigidly moving parts of a bed are otherwise undamped (neither the material nor APIC
+    dissipates them) and ring on for whole revolutions; q acts only on volume change, so
+    shear flow and rigid motion are untouched. ``rate = tr(C)`` is tr(L): in MLS-MPM the
+    affine matrix is the velocity gradient.
+    """
+    q = bulk[0] * rate
+    if rate < 0.0:
+        q += bulk[1] * (-rate) * rate
+    return q
 
 
 @njit(**_JIT_SERIAL)
@@ -281,7 +295,7 @@ def sort_by_cell(x, origin, inv_h, shape):
 
 
 @njit(**_JIT_SERIAL)
-def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
+def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, gp):
     """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_2d`)."""
     _zero(gm)
     _zero(gp)
@@ -297,12 +311,13 @@ def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
         s = stress_scale * vol[p]
         mv0 = mp * v[p, 0]
         mv1 = mp * v[p, 1]
-        # affine momentum Q = m C - dt vol D^-1 sigma, times h: it acts on offsets
+        pressure = _bulk_pressure(C[p, 0, 0] + C[p, 1, 1], bulk)
+        # affine momentum Q = m C - dt vol D^-1 (sigma + q I), times h: it acts on offsets
         # measured in grid units
-        q00 = (mp * C[p, 0, 0] - s * stress[p, 0, 0]) * h
+        q00 = (mp * C[p, 0, 0] - s * (stress[p, 0, 0] + pressure)) * h
         q01 = (mp * C[p, 0, 1] - s * stress[p, 0, 1]) * h
         q10 = (mp * C[p, 1, 0] - s * stress[p, 1, 0]) * h
-        q11 = (mp * C[p, 1, 1] - s * stress[p, 1, 1]) * h
+        q11 = (mp * C[p, 1, 1] - s * (stress[p, 1, 1] + pressure)) * h
         for a in range(3):
             dx = a - rx
             pa0 = mv0 + q00 * dx
@@ -318,7 +333,7 @@ def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
 
 
 @njit(**_JIT_SERIAL)
-def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
+def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, gp):
     """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_3d`)."""
     _zero(gm)
     _zero(gp)
@@ -337,16 +352,17 @@ def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
         mv0 = mp * v[p, 0]
         mv1 = mp * v[p, 1]
         mv2 = mp * v[p, 2]
-        # affine momentum Q = m C - dt vol D^-1 sigma, times h (offsets in grid units)
-        q00 = (mp * C[p, 0, 0] - s * stress[p, 0, 0]) * h
+        pressure = _bulk_pressure(C[p, 0, 0] + C[p, 1, 1] + C[p, 2, 2], bulk)
+        # affine momentum Q = m C - dt vol D^-1 (sigma + q I), times h (offsets in grid units)
+        q00 = (mp * C[p, 0, 0] - s * (stress[p, 0, 0] + pressure)) * h
         q01 = (mp * C[p, 0, 1] - s * stress[p, 0, 1]) * h
         q02 = (mp * C[p, 0, 2] - s * stress[p, 0, 2]) * h
         q10 = (mp * C[p, 1, 0] - s * stress[p, 1, 0]) * h
-        q11 = (mp * C[p, 1, 1] - s * stress[p, 1, 1]) * h
+        q11 = (mp * C[p, 1, 1] - s * (stress[p, 1, 1] + pressure)) * h
         q12 = (mp * C[p, 1, 2] - s * stress[p, 1, 2]) * h
         q20 = (mp * C[p, 2, 0] - s * stress[p, 2, 0]) * h
         q21 = (mp * C[p, 2, 1] - s * stress[p, 2, 1]) * h
-        q22 = (mp * C[p, 2, 2] - s * stress[p, 2, 2]) * h
+        q22 = (mp * C[p, 2, 2] - s * (stress[p, 2, 2] + pressure)) * h
         for a in range(3):
             dx = a - rx
             pa0 = mv0 + q00 * dx
@@ -371,7 +387,7 @@ def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, gm, gp):
 
 
 @njit(**_JIT)
-def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
+def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, starts):
     """Scatter mass and MLS-MPM momentum to per-chunk private grids (2-D plane strain).
 
     Parameters
@@ -388,6 +404,9 @@ def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
+    bulk : tuple of float
+        ``(linear, quadratic)`` bulk viscosity, see :func:`_bulk_pressure`; (0.0, 0.0)
+        for none.
     grid_m : ndarray of float64, shape (T, nx, ny)
         Receives each chunk's node masses [kg] (zeroed here first).
     grid_p : ndarray of float64, shape (T, nx, ny, 2)
@@ -402,13 +421,13 @@ def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
     """
     for t in prange(grid_m.shape[0]):
         _p2g_chunk_2d(
-            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt,
+            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt, bulk,
             grid_m[t], grid_p[t],
         )  # fmt: skip
 
 
 @njit(**_JIT)
-def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
+def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, starts):
     """Scatter mass and MLS-MPM momentum to per-chunk private grids (3-D).
 
     Parameters
@@ -425,6 +444,9 @@ def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
+    bulk : tuple of float
+        ``(linear, quadratic)`` bulk viscosity, see :func:`_bulk_pressure`; (0.0, 0.0)
+        for none.
     grid_m : ndarray of float64, shape (T, nx, ny, nz)
         Receives each chunk's node masses [kg] (zeroed here first).
     grid_p : ndarray of float64, shape (T, nx, ny, nz, 3)
@@ -439,7 +461,7 @@ def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, grid_m, grid_p, starts):
     """
     for t in prange(grid_m.shape[0]):
         _p2g_chunk_3d(
-            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt,
+            starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt, bulk,
             grid_m[t], grid_p[t],
         )  # fmt: skip
 
@@ -687,11 +709,28 @@ def grid_update_3d(
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_range_2d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
-    """G2P of particles lo:hi (see :func:`g2p_2d`); returns how many were projected."""
-    nx, ny = node_sdf.shape
+def _stress_update(stress, codes, p, l, dt, material):
+    """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``."""
+    s = (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
+         stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
+    s, code = stress_step(
+        s, l, dt, material[0], material[1], material[2], material[3], material[4],
+        material[5], material[6],
+    )  # fmt: skip
+    stress[p, 0, 0] = s[0]
+    stress[p, 1, 1] = s[1]
+    stress[p, 2, 2] = s[2]
+    stress[p, 0, 1] = stress[p, 1, 0] = s[3]
+    stress[p, 0, 2] = stress[p, 2, 0] = s[4]
+    stress[p, 1, 2] = stress[p, 2, 1] = s[5]
+    codes[p] = code
+
+
+@njit(**_JIT_SERIAL)
+def _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+    """G2P and stress update of particles lo:hi (see :func:`g2p_2d`)."""
+    nx, ny = vel.shape[0], vel.shape[1]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
-    projected = 0
     for p in range(lo, hi):
         bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
         by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
@@ -729,72 +768,22 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, nod
         C[p, 0, 1] = c01
         C[p, 1, 0] = c10
         C[p, 1, 1] = c11
-        for r in range(3):
-            for s in range(3):
-                L[p, r, s] = 0.0
-        L[p, 0, 0] = c00
-        L[p, 0, 1] = c01
-        L[p, 1, 0] = c10
-        L[p, 1, 1] = c11
         growth = (1.0 + dt * c00) * (1.0 + dt * c11) - dt * dt * c01 * c10
         J[p] *= growth
         vol[p] *= growth
-        x0 = x[p, 0] + dt * v0
-        x1 = x[p, 1] + dt * v1
-        # wall: bilinear SDF at the new position; the normal only when outside
-        ix, tx = _cell((x0 - origin[0]) * inv_h, nx)
-        iy, ty = _cell((x1 - origin[1]) * inv_h, ny)
-        sx = 1.0 - tx
-        sy = 1.0 - ty
-        phi = sx * (sy * node_sdf[ix, iy] + ty * node_sdf[ix, iy + 1]) + tx * (
-            sy * node_sdf[ix + 1, iy] + ty * node_sdf[ix + 1, iy + 1]
-        )
-        if phi > 0.0:
-            n0 = sx * (sy * node_normal[ix, iy, 0] + ty * node_normal[ix, iy + 1, 0]) + tx * (
-                sy * node_normal[ix + 1, iy, 0] + ty * node_normal[ix + 1, iy + 1, 0]
-            )
-            n1 = sx * (sy * node_normal[ix, iy, 1] + ty * node_normal[ix, iy + 1, 1]) + tx * (
-                sy * node_normal[ix + 1, iy, 1] + ty * node_normal[ix + 1, iy + 1, 1]
-            )
-            norm = math.sqrt(n0 * n0 + n1 * n1)
-            if norm > 0.0:
-                n0 /= norm
-                n1 /= norm
-                x0 -= phi * n0
-                x1 -= phi * n1
-                vn = v0 * n0 + v1 * n1
-                if vn > 0.0:
-                    v0 -= vn * n0
-                    v1 -= vn * n1
-                projected += 1
-        x[p, 0] = x0
-        x[p, 1] = x1
+        x[p, 0] += dt * v0
+        x[p, 1] += dt * v1
         v[p, 0] = v0
         v[p, 1] = v1
-    return projected
+        l = (c00, c01, 0.0, c10, c11, 0.0, 0.0, 0.0, 0.0)
+        _stress_update(stress, codes, p, l, dt, material)
 
 
 @njit(**_JIT_SERIAL)
-def _trilinear_3d(field, ix, iy, iz, tx, ty, tz):
-    """Trilinear interpolation of a node field inside cell (ix, iy, iz)."""
-    sx = 1.0 - tx
-    sy = 1.0 - ty
-    sz = 1.0 - tz
-    return sx * (
-        sy * (sz * field[ix, iy, iz] + tz * field[ix, iy, iz + 1])
-        + ty * (sz * field[ix, iy + 1, iz] + tz * field[ix, iy + 1, iz + 1])
-    ) + tx * (
-        sy * (sz * field[ix + 1, iy, iz] + tz * field[ix + 1, iy, iz + 1])
-        + ty * (sz * field[ix + 1, iy + 1, iz] + tz * field[ix + 1, iy + 1, iz + 1])
-    )
-
-
-@njit(**_JIT_SERIAL)
-def _g2p_range_3d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
-    """G2P of particles lo:hi (see :func:`g2p_3d`); returns how many were projected."""
-    nx, ny, nz = node_sdf.shape
+def _g2p_range_3d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+    """G2P and stress update of particles lo:hi (see :func:`g2p_3d`)."""
+    nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
-    projected = 0
     for p in range(lo, hi):
         bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
         by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
@@ -854,15 +843,15 @@ def _g2p_range_3d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, nod
         c20 = scale * (b20 - v2 * rx)
         c21 = scale * (b21 - v2 * ry)
         c22 = scale * (b22 - v2 * rz)
-        C[p, 0, 0] = L[p, 0, 0] = c00
-        C[p, 0, 1] = L[p, 0, 1] = c01
-        C[p, 0, 2] = L[p, 0, 2] = c02
-        C[p, 1, 0] = L[p, 1, 0] = c10
-        C[p, 1, 1] = L[p, 1, 1] = c11
-        C[p, 1, 2] = L[p, 1, 2] = c12
-        C[p, 2, 0] = L[p, 2, 0] = c20
-        C[p, 2, 1] = L[p, 2, 1] = c21
-        C[p, 2, 2] = L[p, 2, 2] = c22
+        C[p, 0, 0] = c00
+        C[p, 0, 1] = c01
+        C[p, 0, 2] = c02
+        C[p, 1, 0] = c10
+        C[p, 1, 1] = c11
+        C[p, 1, 2] = c12
+        C[p, 2, 0] = c20
+        C[p, 2, 1] = c21
+        C[p, 2, 2] = c22
         # det(I + dt L) by cofactors along the first row
         a00 = 1.0 + dt * c00
         a11 = 1.0 + dt * c11
@@ -880,51 +869,28 @@ def _g2p_range_3d(lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, nod
         )
         J[p] *= growth
         vol[p] *= growth
-        x0 = x[p, 0] + dt * v0
-        x1 = x[p, 1] + dt * v1
-        x2 = x[p, 2] + dt * v2
-        # wall: trilinear SDF at the new position; the normal only when outside
-        ix, tx = _cell((x0 - origin[0]) * inv_h, nx)
-        iy, ty = _cell((x1 - origin[1]) * inv_h, ny)
-        iz, tz = _cell((x2 - origin[2]) * inv_h, nz)
-        phi = _trilinear_3d(node_sdf, ix, iy, iz, tx, ty, tz)
-        if phi > 0.0:
-            n0 = _trilinear_3d(node_normal[..., 0], ix, iy, iz, tx, ty, tz)
-            n1 = _trilinear_3d(node_normal[..., 1], ix, iy, iz, tx, ty, tz)
-            n2 = _trilinear_3d(node_normal[..., 2], ix, iy, iz, tx, ty, tz)
-            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-            if norm > 0.0:
-                n0 /= norm
-                n1 /= norm
-                n2 /= norm
-                x0 -= phi * n0
-                x1 -= phi * n1
-                x2 -= phi * n2
-                vn = v0 * n0 + v1 * n1 + v2 * n2
-                if vn > 0.0:
-                    v0 -= vn * n0
-                    v1 -= vn * n1
-                    v2 -= vn * n2
-                projected += 1
-        x[p, 0] = x0
-        x[p, 1] = x1
-        x[p, 2] = x2
+        x[p, 0] += dt * v0
+        x[p, 1] += dt * v1
+        x[p, 2] += dt * v2
         v[p, 0] = v0
         v[p, 1] = v1
         v[p, 2] = v2
-    return projected
+        l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
+        _stress_update(stress, codes, p, l, dt, material)
 
 
 @njit(**_JIT)
-def g2p_2d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
-    """Gather velocities and affine matrices, advect, project escaped particles (2-D).
+def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+    """Gather velocities and affine matrices, advect, update the stress (2-D plane strain).
 
-    Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``),
-    ``L = C``; ``x += dt v``; with ``f = det(I + dt L)``, ``J *= f`` and ``vol *= f`` (so
-    ``vol / J`` stays the initial volume up to round-off). Then, if the bilinear
-    interpolation ``phi`` of ``node_sdf`` at the new ``x`` is positive (the particle left
-    the vessel), ``x -= phi n`` with ``n`` the normalised interpolated ``node_normal``, and
-    an outward normal velocity ``v . n > 0`` is removed.
+    Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``);
+    ``x += dt v``; with ``f = det(I + dt C)``, ``J *= f`` and ``vol *= f`` (so ``vol / J``
+    stays the initial volume up to round-off); then the Mohr-Coulomb stress update
+    (:func:`blendxr.flow.mohr_coulomb.stress_step`) with the velocity gradient ``L = C``
+    (z row and column zero), done here while ``C`` is in registers: one pass over the
+    particles instead of two, and no stored ``L``. Particles that left the vessel are
+    put back afterwards by :func:`blendxr.flow.walls.project_into_vessel`, with the
+    vessel's exact distance.
 
     Parameters
     ----------
@@ -933,43 +899,35 @@ def g2p_2d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
     v : ndarray of float64, shape (N, 2)
         Receives particle velocities [m/s].
     C : ndarray of float64, shape (N, 2, 2)
-        Receives APIC affine matrices [1/s].
+        Receives APIC affine matrices (velocity gradients) [1/s].
     vol, J : ndarray of float64, shape (N,)
         Current volumes [m^3] and Jacobians, updated in place.
+    stress : ndarray of float64, shape (N, 3, 3)
+        Cauchy stresses [Pa], tension positive, updated in place.
+    codes : ndarray of int8, shape (N,)
+        Receives the return code of each particle's stress update (``mohr_coulomb``).
     vel : ndarray of float64, shape (nx, ny, 2)
         Node velocities [m/s] from :func:`grid_update_2d`.
     origin : ndarray of float64, shape (2,)
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    node_sdf : ndarray of float64, shape (nx, ny)
-        Signed distance to the wall at the nodes [m], negative inside the vessel.
-    node_normal : ndarray of float64, shape (nx, ny, 2)
-        Outward wall normals at the nodes.
-    L : ndarray of float64, shape (N, 3, 3)
-        Receives velocity gradients [1/s] (z row and column zero).
-
-    Returns
-    -------
-    int
-        Number of particles projected back onto the wall.
+    material : tuple of 7 float
+        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)`` as for
+        :func:`blendxr.flow.mohr_coulomb.update_stress`.
     """
     n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
-    projected = 0
     for block in prange(n_blocks):
         lo = block * _BLOCK
         hi = min(lo + _BLOCK, x.shape[0])
-        projected += _g2p_range_2d(
-            lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L
-        )
-    return projected
+        _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material)
 
 
 @njit(**_JIT)
-def g2p_3d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
-    """Gather velocities and affine matrices, advect, project escaped particles (3-D).
+def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+    """Gather velocities and affine matrices, advect, update the stress (3-D).
 
-    As :func:`g2p_2d` in three dimensions (trilinear wall interpolation).
+    As :func:`g2p_2d` in three dimensions.
 
     Parameters
     ----------
@@ -978,36 +936,27 @@ def g2p_3d(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L):
     v : ndarray of float64, shape (N, 3)
         Receives particle velocities [m/s].
     C : ndarray of float64, shape (N, 3, 3)
-        Receives APIC affine matrices [1/s].
+        Receives APIC affine matrices (velocity gradients) [1/s].
     vol, J : ndarray of float64, shape (N,)
-        Current volumes [m^3] and Jacobians, updated in place (``*= det(I + dt L)``).
+        Current volumes [m^3] and Jacobians, updated in place (``*= det(I + dt C)``).
+    stress : ndarray of float64, shape (N, 3, 3)
+        Cauchy stresses [Pa], tension positive, updated in place.
+    codes : ndarray of int8, shape (N,)
+        Receives the return code of each particle's stress update.
     vel : ndarray of float64, shape (nx, ny, nz, 3)
         Node velocities [m/s] from :func:`grid_update_3d`.
     origin : ndarray of float64, shape (3,)
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    node_sdf : ndarray of float64, shape (nx, ny, nz)
-        Signed distance to the wall at the nodes [m], negative inside the vessel.
-    node_normal : ndarray of float64, shape (nx, ny, nz, 3)
-        Outward wall normals at the nodes.
-    L : ndarray of float64, shape (N, 3, 3)
-        Receives velocity gradients [1/s] (equal to ``C``).
-
-    Returns
-    -------
-    int
-        Number of particles projected back onto the wall.
+    material : tuple of 7 float
+        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)``.
     """
     n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
-    projected = 0
     for block in prange(n_blocks):
         lo = block * _BLOCK
         hi = min(lo + _BLOCK, x.shape[0])
-        projected += _g2p_range_3d(
-            lo, hi, x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal, L
-        )
-    return projected
+        _g2p_range_3d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material)
 
 
 # ---------------------------------------------------------------------------------------
@@ -1091,34 +1040,3 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
         acc_mom[i, j, k, 0] += vp * v[p, 0]
         acc_mom[i, j, k, 1] += vp * v[p, 1]
         acc_mom[i, j, k, 2] += vp * v[p, 2]
-
-
-@njit(**_JIT)
-def add_bulk_viscosity(stress, L, out, linear, quadratic):
-    """Stress for the momentum update: Cauchy stress plus a bulk-viscous pressure.
-
-    ``out = stress + rho h (b1 c_p + b2**2 h max(-tr D, 0)) tr D I`` with ``linear`` =
-    rho h b1 c_p and ``quadratic`` = rho (b2 h)**2: the linear and quadratic bulk
-    viscosity of explicit dynamics codes. Elastic waves in the rigidly moving parts of a
-    bed are otherwise undamped (neither the material nor APIC dissipates them) and ring
-    on for whole revolutions; the viscous pressure acts only on volume change, so shear
-    flow and rigid motion are untouched. It is not stored in the stress history.
-
-    Parameters
-    ----------
-    stress, L : ndarray of float64, shape (N, 3, 3)
-        Cauchy stress [Pa] and velocity gradient [1/s].
-    out : ndarray of float64, shape (N, 3, 3)
-        Receives the stress P2G should use.
-    linear, quadratic : float
-        rho h b1 c_p [Pa s] and rho (b2 h)**2 [kg/m].
-    """
-    for p in prange(stress.shape[0]):
-        rate = L[p, 0, 0] + L[p, 1, 1] + L[p, 2, 2]
-        q = linear * rate
-        if rate < 0.0:
-            q += quadratic * (-rate) * rate
-        for i in range(3):
-            for j in range(3):
-                out[p, i, j] = stress[p, i, j]
-            out[p, i, i] += q

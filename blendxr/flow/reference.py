@@ -15,11 +15,10 @@ import numpy as np
 from .kernels import GRID_MASS_TINY
 
 __all__ = [
-    "add_bulk_viscosity",
+    "bulk_pressure",
     "deposit",
     "g2p",
     "grid_update",
-    "interpolate_linear",
     "p2g",
     "particles_in_range",
     "sort_by_cell",
@@ -52,11 +51,13 @@ def _stencil_nodes(x, origin, inv_h):
         yield node, weight, (offset - r) / inv_h
 
 
-def p2g(x, v, C, m, vol, stress, origin, inv_h, dt, shape):
-    """Node masses and MLS-MPM momenta: ``sum_p w [m v + (m C - dt vol D^-1 sigma) dx]``."""
+def p2g(x, v, C, m, vol, stress, origin, inv_h, dt, shape, bulk=(0.0, 0.0)):
+    """Node masses and MLS-MPM momenta ``sum_p w [m v + (m C - dt vol D^-1 (sigma + q I)) dx]``,
+    ``q`` the bulk-viscous pressure of :func:`bulk_pressure`."""
     d = x.shape[1]
     d_inv = 4.0 * inv_h**2
-    affine = m[:, None, None] * C - (dt * vol * d_inv)[:, None, None] * stress[:, :d, :d]
+    total = stress[:, :d, :d] + bulk_pressure(C, *bulk)[:, None, None] * np.eye(d)
+    affine = m[:, None, None] * C - (dt * vol * d_inv)[:, None, None] * total
     grid_m = np.zeros(shape)
     grid_p = np.zeros((*shape, d))
     for node, weight, dx in _stencil_nodes(x, origin, inv_h):
@@ -99,26 +100,14 @@ def grid_update(
     return vel
 
 
-def interpolate_linear(field, x, origin, inv_h):
-    """(Bi/tri)linear interpolation of node values ``field`` (shape grid or grid + (k,))."""
-    d = x.shape[1]
-    f = (x - origin) * inv_h
-    cell = np.clip(np.floor(f), 0, np.array(field.shape[:d]) - 2).astype(np.int64)
-    t = f - cell
-    out = 0.0
-    for corner in itertools.product(range(2), repeat=d):
-        corner = np.array(corner)
-        weight = np.prod(np.where(corner == 1, t, 1.0 - t), axis=1)
-        value = field[tuple((cell + corner).T)]
-        out = out + (weight[:, None] * value if value.ndim == 2 else weight * value)
-    return out
+def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material):
+    """Gather, advect, update J and volume, then the stress with the twin of the
+    Mohr-Coulomb update (:mod:`blendxr.flow.mohr_coulomb_reference`) and ``L = C``.
 
-
-def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal):
-    """Gather, advect, update J and volume, project escaped particles onto the wall.
-
-    Returns ``(x, v, C, vol, J, L, n_projected)`` as new arrays.
+    Returns ``(x, v, C, vol, J, stress, codes)`` as new arrays.
     """
+    from .mohr_coulomb_reference import update_stresses
+
     n, d = x.shape
     v_new = np.zeros((n, d))
     b = np.zeros((n, d, d))
@@ -130,17 +119,8 @@ def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, node_sdf, node_normal):
     L = np.zeros((n, 3, 3))
     L[:, :d, :d] = C_new
     growth = np.linalg.det(np.eye(d) + dt * C_new)
-    x_new = x + dt * v_new
-
-    phi = interpolate_linear(node_sdf, x_new, origin, inv_h)
-    normal = interpolate_linear(node_normal, x_new, origin, inv_h)
-    length = np.linalg.norm(normal, axis=1)
-    out = (phi > 0.0) & (length > 0.0)
-    unit = normal[out] / length[out][:, None]
-    x_new[out] -= phi[out][:, None] * unit
-    vn = np.sum(v_new[out] * unit, axis=1)
-    v_new[out] -= np.maximum(vn, 0.0)[:, None] * unit
-    return x_new, v_new, C_new, vol * growth, J * growth, L, int(out.sum())
+    new_stress, codes = update_stresses(stress, L, np.ones(n, bool), dt, *material)
+    return x + dt * v_new, v_new, C_new, vol * growth, J * growth, new_stress, codes
 
 
 def deposit(x, v, vol, origin_out, inv_h_out, shape_out):
@@ -173,8 +153,7 @@ def particles_in_range(x, origin, inv_h, shape):
     return int(bad[0]) if bad.size else -1
 
 
-def add_bulk_viscosity(stress, L, linear, quadratic):
-    """NumPy twin of :func:`blendxr.flow.kernels.add_bulk_viscosity` (returns a new array)."""
-    rate = np.trace(L, axis1=1, axis2=2)
-    q = linear * rate + quadratic * np.minimum(rate, 0.0) * np.abs(rate)
-    return stress + q[:, None, None] * np.eye(3)
+def bulk_pressure(C, linear, quadratic):
+    """Bulk-viscous pressure of each particle from tr(C) (twin of ``kernels._bulk_pressure``)."""
+    rate = np.trace(C, axis1=1, axis2=2)
+    return linear * rate + quadratic * np.minimum(rate, 0.0) * np.abs(rate)

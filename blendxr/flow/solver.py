@@ -118,8 +118,8 @@ class Material:
         """(rho h b1 c_p, rho (b2 h)**2) for a cell h."""
         rho = self.density
         return (
-            rho * h * self.bulk_viscosity_linear * self.p_wave_speed,
-            rho * (self.bulk_viscosity_quadratic * h) ** 2,
+            float(rho * h * self.bulk_viscosity_linear * self.p_wave_speed),
+            float(rho * (self.bulk_viscosity_quadratic * h) ** 2),
         )
 
     @property
@@ -144,7 +144,8 @@ class Material:
             cutoff = self.cohesion / math.tan(phi)
         else:
             cutoff = 0.0
-        return (k, g, math.sin(phi), math.cos(phi), self.cohesion, math.sin(psi), cutoff)
+        values = (k, g, math.sin(phi), math.cos(phi), self.cohesion, math.sin(psi), cutoff)
+        return tuple(float(a) for a in values)  # one compiled signature: all float64
 
 
 # ----------------------------------------------------------------------------- state
@@ -153,24 +154,21 @@ class Material:
 class Particles:
     """Particle arrays of one run (structure of arrays, float64)."""
 
-    FIELDS = ("x", "v", "C", "L", "stress", "mass", "vol0", "vol", "J", "colour")
+    FIELDS = ("x", "v", "C", "stress", "mass", "vol0", "vol", "J", "colour")
 
     def __init__(self, positions: np.ndarray, volume: float, density: float):
         n, d = positions.shape
         self.ndim = d
         self.x = np.ascontiguousarray(positions, dtype=float)
         self.v = np.zeros((n, d))
-        self.C = np.zeros((n, d, d))
-        self.L = np.zeros((n, 3, 3))
+        self.C = np.zeros((n, d, d))  # also the velocity gradient (MLS-MPM)
         self.stress = np.zeros((n, 3, 3))
-        self.stress_p2g = np.zeros((n, 3, 3))  # stress + bulk viscosity, rebuilt each step
         self.vol0 = np.full(n, float(volume))
         self.vol = self.vol0.copy()
         self.J = np.ones(n)
         self.mass = self.vol0 * density
         self.colour = np.zeros(n)
         self.codes = np.zeros(n, np.int8)
-        self.active = np.ones(n, np.uint8)
 
     @property
     def count(self) -> int:
@@ -186,10 +184,7 @@ class Particles:
     def load(self, arrays: dict) -> None:
         for name in self.FIELDS:
             setattr(self, name, np.ascontiguousarray(arrays[name]))
-        n = self.x.shape[0]
-        self.stress_p2g = np.zeros((n, 3, 3))
-        self.codes = np.zeros(n, np.int8)
-        self.active = np.ones(n, np.uint8)
+        self.codes = np.zeros(self.x.shape[0], np.int8)
 
 
 class BackgroundGrid:
@@ -210,7 +205,6 @@ class BackgroundGrid:
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
         self.node_sdf = np.ascontiguousarray(vessel.sdf(nodes))
         self.node_normal = np.ascontiguousarray(vessel.normal(nodes))
-        self.inside = np.full(self.shape, -1.0)  # "every node inside": G2P never projects
         self.scratch = np.zeros((threads, 4))
         self.shape_array = np.asarray(self.shape, np.int64)
         self.threads = threads
@@ -413,6 +407,7 @@ class FlowSimulation:
         self.particles.colour[:] = self._colour(positions)
         self.grid = BackgroundGrid(self.vessel, s.cell, _threads(self.particles.count))
         self.bulk = self.material.bulk_viscosity(s.cell)
+        self.stress_arguments = self.material.return_arguments()
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
@@ -506,9 +501,8 @@ class FlowSimulation:
         gravity, omega, damping = self._body(self.t + 0.5 * dt)
         three = self.ndim == 3
         inv_h = 1.0 / g.h
-        mpm.add_bulk_viscosity(p.stress, p.L, p.stress_p2g, *self.bulk)
         (mpm.p2g_3d if three else mpm.p2g_2d)(
-            p.x, p.v, p.C, p.mass, p.vol, p.stress_p2g, g.origin, inv_h, dt,
+            p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt, self.bulk,
             g.thread_m, g.thread_p, self.starts,
         )  # fmt: skip
         (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
@@ -518,16 +512,16 @@ class FlowSimulation:
             g.mass, g.momentum, g.velocity, g.origin, g.h, dt, gravity, omega, damping,
             g.node_sdf, g.node_normal, self.material.wall_friction, WALL_BAND * g.h,
         )  # fmt: skip
-        # no projection on interpolated distances (biased at convex walls): exact below
+        # G2P updates the stress too; walls: exact distances below, not interpolated ones
+        # (biased at convex walls)
         (mpm.g2p_3d if three else mpm.g2p_2d)(
-            p.x, p.v, p.C, p.vol, p.J, g.velocity, g.origin, inv_h, dt,
-            g.inside, g.node_normal, p.L,
+            p.x, p.v, p.C, p.vol, p.J, p.stress, p.codes, g.velocity, g.origin, inv_h, dt,
+            self.stress_arguments,
         )  # fmt: skip
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
             g.scratch, g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
         )  # fmt: skip
-        mc.update_stresses(p.stress, p.L, p.active, dt, *self.material.return_arguments(), p.codes)
         self.t += dt
         self.steps += 1
         self.particle_updates += p.count
