@@ -625,6 +625,8 @@ def _cf_errors(path, tmp_path) -> tuple[int, str]:
     ]  # fmt: skip
     result = subprocess.run(command, capture_output=True, text=True, timeout=300)
     output = result.stdout + result.stderr
+    if "requires UNIDATA UDUNITS-2" in output:  # a system library, installed by .ci/run
+        pytest.skip("the CF checker cannot run: the UDUNITS-2 library is missing")
     match = re.search(r"ERRORS detected:\s*(\d+)", output)
     assert match, output
     return int(match.group(1)), output
