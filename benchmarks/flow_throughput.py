@@ -108,6 +108,8 @@ def kernel_times(sim, dt) -> dict:
             inv_h,
             dt,
             sim.stress_arguments,
+            sim.starts,
+            g.g2p_work,
         )
 
     parts = {

@@ -88,7 +88,10 @@ def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=MATERIAL):
         stress = np.zeros((len(x), 3, 3))
     x, v, C, vol, J, stress = (a.copy() for a in (x, v, C, vol, J, stress))
     codes = np.full(len(x), -9, np.int8)
-    G2P[d](x, v, C, vol, J, stress, codes, vel, ORIGIN[d], INV_H, dt, material)
+    # two chunks in blocks of 16: full and partial blocks of the batched 3-D stress update
+    starts = kernels.chunk_starts(len(x), 2)
+    work = tuple(np.full(w.shape, np.nan) for w in mohr_coulomb.batch_work(2, 16))
+    G2P[d](x, v, C, vol, J, stress, codes, vel, ORIGIN[d], INV_H, dt, material, starts, work)
     return x, v, C, vol, J, stress, codes
 
 

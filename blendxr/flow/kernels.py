@@ -71,9 +71,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .mohr_coulomb import stress_step
+from .mohr_coulomb import eigh3_batch, return_batch, stress_step, trial_stress
 
 __all__ = [
+    "G2P_BLOCK",
     "GRID_MASS_TINY",
     "chunk_starts",
     "deposit_2d",
@@ -99,10 +100,12 @@ GRID_MASS_TINY = 1e-250
 _JIT = {"parallel": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _JIT_SERIAL = {"cache": True, "fastmath": False, "error_model": "numpy"}
 
-# Particles per G2P work item. P2G and G2P run their prange over work items (chunks,
-# blocks of particles) and call a serial helper per item: a small parallel loop body
-# compiles much faster than a large one, and one call per block costs nothing.
-_BLOCK = 256
+# P2G and G2P run their prange over chunks of particles and call serial helpers per
+# chunk: a small parallel loop body compiles much faster than a large one.
+
+#: Particles per block of the 3-D G2P's batched stress update: its work arrays (21 rows
+#: of float64) then take 21 KiB, within a 32 KiB L1 data cache.
+G2P_BLOCK = 128
 
 
 # ---------------------------------------------------------------------------------------
@@ -780,8 +783,8 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_range_3d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
-    """G2P and stress update of particles lo:hi (see :func:`g2p_3d`)."""
+def _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, G, trial):
+    """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``."""
     nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
     for p in range(lo, hi):
@@ -876,11 +879,16 @@ def _g2p_range_3d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        _stress_update(stress, codes, p, l, dt, material)
+        s = (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
+             stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
+        s = trial_stress(s, l, dt, lam, G)
+        k = p - lo
+        for r in range(6):
+            trial[r, k] = s[r]
 
 
 @njit(**_JIT)
-def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, starts, work):
     """Gather velocities and affine matrices, advect, update the stress (2-D plane strain).
 
     Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``);
@@ -915,16 +923,21 @@ def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
     material : tuple of 7 float
         ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)`` as for
         :func:`blendxr.flow.mohr_coulomb.update_stress`.
+    starts : ndarray of int64, shape (T + 1,)
+        Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
+    work : tuple of ndarray
+        The work arrays of :func:`g2p_3d`; unused in plane strain, where σxz = σyz = 0
+        and the in-plane closed form needs none.
     """
-    n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
-    for block in prange(n_blocks):
-        lo = block * _BLOCK
-        hi = min(lo + _BLOCK, x.shape[0])
-        _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material)
+    for t in prange(starts.shape[0] - 1):
+        _g2p_range_2d(
+            starts[t], starts[t + 1], x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt,
+            material,
+        )  # fmt: skip
 
 
 @njit(**_JIT)
-def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, starts, work):
     """Gather velocities and affine matrices, advect, update the stress (3-D).
 
     As :func:`g2p_2d` in three dimensions.
@@ -951,12 +964,28 @@ def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
         Inverse node spacing [1/m], time step [s].
     material : tuple of 7 float
         ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)``.
+    starts : ndarray of int64, shape (T + 1,)
+        Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
+    work : tuple of 5 ndarray of float64, shapes (T, rows, B)
+        Per-task work arrays, ``blendxr.flow.mohr_coulomb.batch_work(T, B)``: each task
+        runs its chunk in blocks of B particles, gathering and forming the elastic trial
+        stresses of a block, then decomposing them all at once with the SIMD loops of
+        :func:`blendxr.flow.mohr_coulomb.eigh3_batch`, then returning them.
     """
-    n_blocks = (x.shape[0] + _BLOCK - 1) // _BLOCK
-    for block in prange(n_blocks):
-        lo = block * _BLOCK
-        hi = min(lo + _BLOCK, x.shape[0])
-        _g2p_range_3d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material)
+    K, G = material[0], material[1]
+    lam = K - 2.0 * G / 3.0
+    trial, alpha, e, uw, out = work
+    block = trial.shape[2]
+    for t in prange(starts.shape[0] - 1):
+        for lo in range(starts[t], starts[t + 1], block):
+            hi = min(lo + block, starts[t + 1])
+            n = hi - lo
+            _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, G, trial[t])
+            eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
+            return_batch(
+                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, lam, G, material[2],
+                material[3], material[4], material[5], material[6],
+            )  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------

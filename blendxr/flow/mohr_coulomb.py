@@ -95,8 +95,14 @@ __all__ = [
     "TENSION_CAP",
     "elastic_constants",
     "p_wave_speed",
+    "BATCH_RANGE",
+    "BATCH_ROWS",
+    "batch_work",
+    "eigh3_batch",
     "principal_stresses",
+    "return_batch",
     "stress_step",
+    "trial_stress",
     "update_stress",
     "update_stresses",
     "yield_value",
@@ -632,13 +638,9 @@ def _invariant_bounds(s, sin_phi, cos_phi, cohesion):
 
 
 @njit(**_JIT)
-def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
-    """Return of a general symmetric stress through its eigen-decomposition."""
-    # Most of a resting bed is clearly elastic: skip the eigen-decomposition there.
-    f_bound, s1_bound = _invariant_bounds(s, sin_phi, cos_phi, cohesion)
-    if f_bound <= 0.0 and (tension_cutoff <= 0.0 or s1_bound <= tension_cutoff):
-        return s, ELASTIC
-    e0, e1, e2, x0, x1, x2, y0, y1, y2, z0, z1, z2 = _eigh3(s)
+def _return_with_eigen(s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Return of a symmetric trial stress, given its eigen-decomposition (a 12-tuple)."""
+    e0, e1, e2, x0, x1, x2, y0, y1, y2, z0, z1, z2 = eig
     i1, i2, i3 = _order3(e0, e1, e2)
     t1, t2, t3 = _pick(i1, e0, e1, e2), _pick(i2, e0, e1, e2), _pick(i3, e0, e1, e2)
     n1, n2, n3, code = _principal_update(
@@ -661,9 +663,215 @@ def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cuto
     ), code
 
 
+@njit(**_JIT)
+def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+    """Return of a general symmetric stress through its eigen-decomposition."""
+    # Most of a resting bed is clearly elastic: skip the eigen-decomposition there.
+    f_bound, s1_bound = _invariant_bounds(s, sin_phi, cos_phi, cohesion)
+    if f_bound <= 0.0 and (tension_cutoff <= 0.0 or s1_bound <= tension_cutoff):
+        return s, ELASTIC
+    return _return_with_eigen(
+        s, _eigh3(s), lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Batched eigen-decomposition: the closed form of _eigh3 as four branch-free loops over
+# a block of trial stresses, in structure-of-arrays layout. Each loop is small and
+# free of branches, so LLVM turns it into SIMD code (AVX2/AVX-512: 4 or 8 particles per
+# instruction) and the long chain of divisions and square roots of one decomposition
+# overlaps with the next ones; one decomposition takes about a tenth of the scalar
+# _eigh3's time. No rescaling: entries must lie within BATCH_RANGE in magnitude (p³ ~
+# |A|³ must neither over- nor underflow); return_batch sends others to _eigh3.
+# --------------------------------------------------------------------------------------
+
+#: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`).
+BATCH_ROWS = (6, 1, 3, 6, 5)
+#: Largest-entry magnitudes the batched decomposition takes without rescaling.
+BATCH_RANGE = (1e-90, 1e90)
+
+
+def batch_work(threads, block):
+    """Work arrays of :func:`eigh3_batch` for ``threads`` chunks of ``block`` particles.
+
+    Returns a tuple of five float64 arrays of shape (threads, rows, block): the trial
+    stresses (6 rows: xx, yy, zz, xy, xz, yz), the far eigenvalue, its eigenvector, the
+    orthonormal pair spanning the plane orthogonal to it, and the eigenvalues with the
+    2×2 rotation (far, larger, smaller, c, s).
+    """
+    import numpy as np
+
+    return tuple(np.zeros((threads, rows, block)) for rows in BATCH_ROWS)
+
+
+@njit(**_JIT)
+def _batch_far_root(a, alpha, n):
+    for i in range(n):
+        a00, a11, a22, a01, a02, a12 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
+        q = (a00 + a11 + a22) * (1.0 / 3.0)
+        b00, b11, b22 = a00 - q, a11 - q, a22 - q
+        p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) * (
+            1.0 / 6.0
+        )
+        p = math.sqrt(p2)
+        det_b = (
+            b00 * (b11 * b22 - a12 * a12)
+            - a01 * (a01 * b22 - a12 * a02)
+            + a02 * (a01 * a12 - b11 * a02)
+        )
+        r = 0.5 * det_b / (p2 * p if p2 > 0.0 else 1.0)
+        r = min(1.0, max(-1.0, r))
+        ra = abs(r)
+        c = _CUBIC_ROOT_FIT
+        x = ((((((c[7] * ra + c[6]) * ra + c[5]) * ra + c[4]) * ra + c[3]) * ra + c[2]) * ra
+             + c[1]) * ra + c[0]  # fmt: skip
+        x = x - (4.0 * x * x * x - 3.0 * x - ra) / (12.0 * x * x - 3.0)
+        alpha[0, i] = q + math.copysign(2.0 * p * x, r)
+
+
+@njit(**_JIT)
+def _batch_far_vector(a, alpha, e, n):
+    for i in range(n):
+        a01, a02, a12 = a[3, i], a[4, i], a[5, i]
+        m00, m11, m22 = a[0, i] - alpha[0, i], a[1, i] - alpha[0, i], a[2, i] - alpha[0, i]
+        x0, x1, x2 = a01 * a12 - a02 * m11, a02 * a01 - m00 * a12, m00 * m11 - a01 * a01
+        y0, y1, y2 = a01 * m22 - a02 * a12, a02 * a02 - m00 * m22, m00 * a12 - a01 * a02
+        z0, z1, z2 = m11 * m22 - a12 * a12, a12 * a02 - a01 * m22, a01 * a12 - m11 * a02
+        nx = x0 * x0 + x1 * x1 + x2 * x2
+        ny = y0 * y0 + y1 * y1 + y2 * y2
+        nz = z0 * z0 + z1 * z1 + z2 * z2
+        take = ny > nx
+        x0, x1, x2, nx = (
+            (y0 if take else x0),
+            (y1 if take else x1),
+            (y2 if take else x2),
+            max(nx, ny),
+        )
+        take = nz > nx
+        x0, x1, x2, nx = (
+            (z0 if take else x0),
+            (z1 if take else x1),
+            (z2 if take else x2),
+            max(nx, nz),
+        )
+        some = nx > 0.0  # else A = alpha I: any vector
+        inv = 1.0 / math.sqrt(nx if some else 1.0)
+        e[0, i] = x0 * inv if some else 1.0
+        e[1, i] = x1 * inv if some else 0.0
+        e[2, i] = x2 * inv if some else 0.0
+
+
+@njit(**_JIT)
+def _batch_plane(e, uw, n):
+    for i in range(n):
+        e0, e1, e2 = e[0, i], e[1, i], e[2, i]
+        first = abs(e0) > abs(e1)
+        k = 1.0 / math.sqrt(e0 * e0 + e2 * e2 if first else e1 * e1 + e2 * e2)
+        u0 = -e2 * k if first else 0.0
+        u1 = 0.0 if first else e2 * k
+        u2 = e0 * k if first else -e1 * k
+        uw[0, i], uw[1, i], uw[2, i] = u0, u1, u2
+        uw[3, i] = e1 * u2 - e2 * u1
+        uw[4, i] = e2 * u0 - e0 * u2
+        uw[5, i] = e0 * u1 - e1 * u0
+
+
+@njit(**_JIT)
+def _batch_pair(a, e, uw, out, n):
+    for i in range(n):
+        a00, a11, a22, a01, a02, a12 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
+        e0, e1, e2 = e[0, i], e[1, i], e[2, i]
+        u0, u1, u2, w0, w1, w2 = uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i]
+        au0, au1, au2 = _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2)
+        aw0, aw1, aw2 = _sym_apply(a00, a11, a22, a01, a02, a12, w0, w1, w2)
+        ae0, ae1, ae2 = _sym_apply(a00, a11, a22, a01, a02, a12, e0, e1, e2)
+        m00 = u0 * au0 + u1 * au1 + u2 * au2
+        m11 = w0 * aw0 + w1 * aw1 + w2 * aw2
+        m01 = 0.5 * (u0 * aw0 + u1 * aw1 + u2 * aw2 + w0 * au0 + w1 * au1 + w2 * au2)
+        mean = 0.5 * (m00 + m11)
+        half = 0.5 * (m00 - m11)
+        radius = math.sqrt(half * half + m01 * m01)
+        big = mean + radius
+        c0, c1, d0, d1 = m01, big - m00, big - m11, m01
+        nc = c0 * c0 + c1 * c1
+        nd = d0 * d0 + d1 * d1
+        take = nd > nc
+        c0, c1, nc = (d0 if take else c0), (d1 if take else c1), max(nc, nd)
+        some = nc > 0.0
+        k = 1.0 / math.sqrt(nc if some else 1.0)
+        out[0, i] = e0 * ae0 + e1 * ae1 + e2 * ae2
+        out[1, i] = big
+        out[2, i] = mean - radius
+        out[3, i] = c0 * k if some else 1.0
+        out[4, i] = c1 * k if some else 0.0
+
+
+@njit(**_JIT)
+def eigh3_batch(trial, alpha, e, uw, out, n):
+    """Eigen-decompositions of the first ``n`` trial stresses of a block (SIMD loops).
+
+    ``trial`` (6, B) holds the stresses as rows xx, yy, zz, xy, xz, yz; the other arrays
+    are work space and results (see :func:`batch_work`, one thread's slice each). After
+    the call, eigenvalue k of particle i is ``out[k, i]`` for k = 0, 1, 2 with the
+    vectors ``e[:, i]``, ``c u + s w`` and ``c w - s u`` (``c, s = out[3:5, i]``,
+    ``u, w = uw[:3, i], uw[3:, i]``); :func:`return_batch` reads them. The same closed
+    form as the scalar decomposition, to round-off.
+    """
+    _batch_far_root(trial, alpha, n)
+    _batch_far_vector(trial, alpha, e, n)
+    _batch_plane(e, uw, n)
+    _batch_pair(trial, e, uw, out, n)
+
+
+@njit(**_JIT)
+def return_batch(lo, n, trial, e, uw, out, stress, codes, lam, G, sin_phi, cos_phi, cohesion,
+                 sin_psi, tension_cutoff):  # fmt: skip
+    """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
+
+    Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i`` and
+    ``codes`` its return code. Trials outside :data:`BATCH_RANGE` are decomposed again
+    by the scalar, rescaling :func:`_eigh3`.
+    """
+    for i in range(n):
+        s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
+        size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
+        if BATCH_RANGE[0] <= size <= BATCH_RANGE[1]:
+            c, sn = out[3, i], out[4, i]
+            u0, u1, u2, w0, w1, w2 = uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i]
+            eig = (
+                out[0, i], out[1, i], out[2, i],
+                e[0, i], e[1, i], e[2, i],
+                c * u0 + sn * w0, c * u1 + sn * w1, c * u2 + sn * w2,
+                c * w0 - sn * u0, c * w1 - sn * u1, c * w2 - sn * u2,
+            )  # fmt: skip
+        else:
+            eig = _eigh3(s)
+        s, code = _return_with_eigen(
+            s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+        )
+        p = lo + i
+        stress[p, 0, 0] = s[0]
+        stress[p, 1, 1] = s[1]
+        stress[p, 2, 2] = s[2]
+        stress[p, 0, 1] = stress[p, 1, 0] = s[3]
+        stress[p, 0, 2] = stress[p, 2, 0] = s[4]
+        stress[p, 1, 2] = stress[p, 2, 1] = s[5]
+        codes[p] = code
+
+
 # --------------------------------------------------------------------------------------
 # Public kernels
 # --------------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def trial_stress(s, l, dt, lam, G):
+    """Elastic trial: Jaumann (Hughes–Winget) rotation, then the hypoelastic increment.
+
+    ``s`` the stress 6-tuple (xx, yy, zz, xy, xz, yz), ``l`` the velocity gradient
+    9-tuple row by row, ``lam`` and ``G`` Lamé's constants; returns the trial 6-tuple.
+    """
+    return _elastic_increment(_rotate(_spin_rotation(l, dt), s), l, dt, lam, G)
 
 
 @njit(**_JIT)
@@ -675,8 +883,7 @@ def stress_step(s, l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cut
     (L00, L01, L02, L10, ..., L22). Returns ``(new stress 6-tuple, code)``.
     """
     lam = K - 2.0 * G / 3.0
-    s = _rotate(_spin_rotation(l, dt), s)
-    s = _elastic_increment(s, l, dt, lam, G)
+    s = trial_stress(s, l, dt, lam, G)
     if s[4] == 0.0 and s[5] == 0.0:
         return _return_plane_strain(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
     return _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)

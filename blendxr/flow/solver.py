@@ -213,6 +213,7 @@ class BackgroundGrid:
         self.mass = np.zeros(self.shape)
         self.momentum = np.zeros((*self.shape, self.ndim))
         self.velocity = np.zeros((*self.shape, self.ndim))
+        self.g2p_work = mc.batch_work(threads, mpm.G2P_BLOCK if self.ndim == 3 else 1)
 
     @property
     def nbytes(self) -> int:
@@ -516,7 +517,7 @@ class FlowSimulation:
         # (biased at convex walls)
         (mpm.g2p_3d if three else mpm.g2p_2d)(
             p.x, p.v, p.C, p.vol, p.J, p.stress, p.codes, g.velocity, g.origin, inv_h, dt,
-            self.stress_arguments,
+            self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
