@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import blendxr as bx
-from blendxr.flow.solver import FlowBlowUpError, FlowSimulation, solve_flow
+from blendxr.flow.solver import FlowBlowUpError, FlowSimulation, PhaseAverager, solve_flow
 from blendxr.scene import SceneError
 
 G = 9.81
@@ -106,10 +106,37 @@ def test_solve_flow_gives_a_valid_flow_that_conserves_material_and_mixes(tmp_pat
     assert float(flow["fill"].sum()) * cell_area == pytest.approx(
         flow.attrs["material_volume_m3"], rel=0.05
     )
-    for key in ("periodicity_vx", "periodicity_vy", "particle_updates_per_s"):
+    for key in (
+        "periodicity_vx",
+        "periodicity_vy",
+        "periodicity_noise_vx",
+        "particle_updates_per_s",
+    ):
         assert math.isfinite(flow.attrs[key])
     mixed = bx.mix(flow, revolutions=0.5, cells=24, k1=0.01, progress=False)
     assert np.isfinite(mixed["rsd"]).all()
+
+
+def test_phase_average_of_the_two_particle_halves_is_the_whole_average():
+    # the noise estimate splits the particles into even and odd halves; their volumes and
+    # momenta must add up to the single average exactly
+    rng = np.random.default_rng(5)
+    whole = PhaseAverager(np.zeros(3), (4, 3, 5), 0.1, 2)
+    split = PhaseAverager(np.zeros(3), (4, 3, 5), 0.1, 2, halves=True)
+    for k in (0, 1, 1):
+        x = rng.uniform(0.0, 0.3, (501, 3))
+        v = rng.normal(size=(501, 3))
+        vol = rng.uniform(0.5, 1.5, 501) * 1e-4
+        whole.add(k, x, v, vol)
+        split.add(k, x, v, vol)
+    fill, vel, raw = whole.fields()
+    np.testing.assert_allclose(split.fields()[2], raw, rtol=1e-13)
+    np.testing.assert_allclose(split.fields()[1], vel, rtol=1e-12, atol=1e-15)
+    (_, vel_a, raw_a), (_, vel_b, raw_b) = split.half_fields()
+    np.testing.assert_allclose(0.5 * (raw_a + raw_b), raw, rtol=1e-13)
+    both = raw_a[..., None] * vel_a + raw_b[..., None] * vel_b
+    np.testing.assert_allclose(both, 2.0 * raw[..., None] * vel, rtol=1e-11, atol=1e-15)
+    assert np.abs(vel_a - vel_b).max() > 0.1  # the halves are different samples
 
 
 def test_resumed_run_equals_uninterrupted_run(tmp_path):

@@ -301,17 +301,21 @@ class PhaseAverager:
 
     Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
     of a bin is its mean particle volume per cell over its samples, the velocity its
-    volume-weighted mean.
+    volume-weighted mean. With ``halves``, even- and odd-numbered particles are kept
+    apart (their sum is the same average): two estimates of the same field from
+    disjoint halves of the particles, whose difference measures the sampling noise of
+    the average (:meth:`half_fields`).
     """
 
-    def __init__(self, lower: np.ndarray, shape: tuple, h: float, phases: int):
+    def __init__(self, lower: np.ndarray, shape: tuple, h: float, phases: int, halves=False):
         self.origin = np.asarray(lower, float)
         self.shape = tuple(shape)
         self.h = float(h)
         self.phases = int(phases)
         self.ndim = len(shape)
-        self.vol = np.zeros((phases, *shape))
-        self.mom = np.zeros((phases, *shape, self.ndim))
+        parts = 2 if halves else 1
+        self.vol = np.zeros((parts, phases, *shape))
+        self.mom = np.zeros((parts, phases, *shape, self.ndim))
         self.samples = np.zeros(phases, np.int64)
 
     def bin_of(self, phase: float) -> int:
@@ -319,19 +323,30 @@ class PhaseAverager:
 
     def add(self, k: int, x: np.ndarray, v: np.ndarray, vol: np.ndarray) -> None:
         deposit = mpm.deposit_3d if self.ndim == 3 else mpm.deposit_2d
-        deposit(x, v, vol, self.origin, 1.0 / self.h, self.vol[k], self.mom[k])
+        parts = self.vol.shape[0]
+        for half in range(parts):
+            pick = slice(half, None, parts)
+            deposit(x[pick], v[pick], vol[pick], self.origin, 1.0 / self.h,
+                    self.vol[half, k], self.mom[half, k])  # fmt: skip
         self.samples[k] += 1
 
     def fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(fill, velocity (n, ..., d), raw fill before clipping) of every bin."""
+        return self._fields(self.vol.sum(axis=0), self.mom.sum(axis=0))
+
+    def half_fields(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`fields` of each half of the particles (each fill about half the total)."""
+        return [self._fields(2.0 * v, 2.0 * m) for v, m in zip(self.vol, self.mom, strict=True)]
+
+    def _fields(self, vol, mom):
         if np.any(self.samples == 0):
             empty = np.flatnonzero(self.samples == 0).tolist()
             raise RuntimeError(f"phase bins {empty} received no samples; use fewer phases")
         cell_volume = self.h**self.ndim
         shape = (-1,) + (1,) * self.ndim
-        raw = self.vol / (cell_volume * self.samples.reshape(shape))
+        raw = vol / (cell_volume * self.samples.reshape(shape))
         with np.errstate(invalid="ignore", divide="ignore"):
-            vel = np.where(self.vol[..., None] > 0, self.mom / self.vol[..., None], 0.0)
+            vel = np.where(vol[..., None] > 0, mom / vol[..., None], 0.0)
         return np.clip(raw, 0.0, 1.0), vel, raw
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
@@ -427,7 +442,9 @@ class FlowSimulation:
         self.particle_updates = 0
         self._output_grid()
         self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
-        self.last = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
+        self.last = PhaseAverager(
+            self.out_origin, self.out_shape, s.output_cell, s.phases, halves=True
+        )
         self.previous = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
         # fixed at the start (material at rest), so that a resumed run samples the same steps
         self.sample_every = self.samples_every()
@@ -829,13 +846,24 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
                 attrs[f"periodicity_vessel_frame_{name}"] = value
         for name, value in periodicity(lab_p, lab, fill_p, fill).items():
             attrs[f"periodicity_{name}"] = value
+        # the same measure between the two halves of the particles within the last
+        # revolution: what sampling noise alone puts into eq. (30). Each half has twice
+        # the variance of the whole, so the difference of two independent whole-sample
+        # averages would be 1/sqrt(2) of it.
+        (fill_a, vel_a, _), (fill_b, vel_b, _) = sim.last.half_fields()
+        if not (sim.lab_frame or s.rpm == 0):
+            vel_a, vel_b = (_lab_velocities(sim, v) for v in (vel_a, vel_b))
+        for name, value in periodicity(vel_a, vel_b, fill_a, fill_b).items():
+            attrs[f"periodicity_noise_{name}"] = value / math.sqrt(2.0)
         attrs["periodicity_definition"] = (
             "eq. (30) between the last two recorded revolutions (rpm = 0: the last two "
             "averaging windows) on lab-frame velocities (the frame of the paper's fixed "
             "Eulerian mesh; periodicity_vessel_frame_*: the same on the stored "
             "vessel-frame velocities, which lack the rigid rotation and are stricter), "
             "cells with fill > 0.5 in both and |v| above 5 % of the component's largest; "
-            "*_norm: sum |dv| / sum |v| over the same cells"
+            "*_norm: sum |dv| / sum |v| over the same cells; periodicity_noise_*: the "
+            "part sampling noise alone accounts for, eq. (30) between the averages of the "
+            "even- and odd-numbered particles of the last revolution, over sqrt(2)"
         )
     axes = dict(zip("xyz", sim.out_axes, strict=False))
     phases = np.arange(s.phases) / s.phases
