@@ -71,7 +71,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .mohr_coulomb import eigh3_batch, return_batch, stress_step, trial_stress
+from .mohr_coulomb import (
+    eigh3_batch,
+    read_stress,
+    return_batch,
+    stress_step,
+    trial_stress,
+    write_stress,
+)
 
 __all__ = [
     "G2P_BLOCK",
@@ -714,18 +721,11 @@ def grid_update_3d(
 @njit(**_JIT_SERIAL)
 def _stress_update(stress, codes, p, l, dt, material):
     """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``."""
-    s = (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
-         stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
     s, code = stress_step(
-        s, l, dt, material[0], material[1], material[2], material[3], material[4],
-        material[5], material[6],
+        read_stress(stress, p), l, dt, material[0], material[1], material[2], material[3],
+        material[4], material[5], material[6],
     )  # fmt: skip
-    stress[p, 0, 0] = s[0]
-    stress[p, 1, 1] = s[1]
-    stress[p, 2, 2] = s[2]
-    stress[p, 0, 1] = stress[p, 1, 0] = s[3]
-    stress[p, 0, 2] = stress[p, 2, 0] = s[4]
-    stress[p, 1, 2] = stress[p, 2, 1] = s[5]
+    write_stress(stress, p, s)
     codes[p] = code
 
 
@@ -879,9 +879,7 @@ def _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, 
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        s = (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
-             stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
-        s = trial_stress(s, l, dt, lam, G)
+        s = trial_stress(read_stress(stress, p), l, dt, lam, G)
         k = p - lo
         for r in range(6):
             trial[r, k] = s[r]

@@ -95,16 +95,18 @@ __all__ = [
     "TENSION_CAP",
     "elastic_constants",
     "p_wave_speed",
-    "BATCH_RANGE",
     "BATCH_ROWS",
+    "SAFE_RANGE",
     "batch_work",
     "eigh3_batch",
     "principal_stresses",
+    "read_stress",
     "return_batch",
     "stress_step",
     "trial_stress",
     "update_stress",
     "update_stresses",
+    "write_stress",
     "yield_value",
 ]
 
@@ -250,36 +252,7 @@ def _elastic_increment(s, l, dt, lam, G):
     )
 
 
-@njit(**_JIT)
-def _cross(a0, a1, a2, b0, b1, b2):
-    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-@njit(**_JIT)
-def _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha):
-    """Unit eigenvector of a symmetric 3×3 for its most separated eigenvalue ``alpha``.
-
-    The rows of A − αI span the plane orthogonal to the eigenvector; the largest of their
-    three cross products is the best-conditioned normal of that plane.
-    """
-    m00, m11, m22 = a00 - alpha, a11 - alpha, a22 - alpha
-    x0, x1, x2 = _cross(m00, a01, a02, a01, m11, a12)
-    y0, y1, y2 = _cross(m00, a01, a02, a02, a12, m22)
-    z0, z1, z2 = _cross(a01, m11, a12, a02, a12, m22)
-    nx = x0 * x0 + x1 * x1 + x2 * x2
-    ny = y0 * y0 + y1 * y1 + y2 * y2
-    nz = z0 * z0 + z1 * z1 + z2 * z2
-    if ny > nx:
-        x0, x1, x2, nx = y0, y1, y2, ny
-    if nz > nx:
-        x0, x1, x2, nx = z0, z1, z2, nz
-    if not nx > 0.0:  # A = αI: every vector is an eigenvector
-        return 1.0, 0.0, 0.0
-    inv = 1.0 / math.sqrt(nx)
-    return x0 * inv, x1 * inv, x2 * inv
-
-
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2):
     return (
         a00 * u0 + a01 * u1 + a02 * u2,
@@ -302,113 +275,154 @@ _CUBIC_ROOT_FIT = (
     0.0005477855432569341,
 )
 
-
-@njit(**_JIT)
-def _largest_cubic_root(r):
-    """The largest root of 4x³ − 3x = r for r in [0, 1] (x in [√3/2, 1]), no acos or cos."""
-    c = _CUBIC_ROOT_FIT
-    x = c[7]
-    for k in range(6, -1, -1):
-        x = x * r + c[k]
-    return x - (4.0 * x * x * x - 3.0 * x - r) / (12.0 * x * x - 3.0)
+# The closed-form eigen-decomposition in four steps. Each is free of branches (the
+# choices are selects), so a loop over many matrices that calls them compiles to SIMD
+# code (eigh3_batch); _eigh3 calls them for one matrix. They are inlined where they are
+# called (inline="always"): a call left in a loop body would stop the vectorisation.
 
 
-#: Matrices whose largest entry is outside [2^-300, 2^300] are rescaled first, so that
-#: p³ can neither under- nor overflow; stresses in Pa never are.
-_EIG_SMALL = 2.0**-300
-_EIG_LARGE = 2.0**300
+@njit(inline="always", **_JIT)
+def _far_root(a00, a11, a22, a01, a02, a12):
+    """The eigenvalue farthest from the other two (at least √3 p from both).
 
-
-@njit(**_JIT)
-def _eigh3(s):
-    """Eigenvalues (e0, e1, e2) and eigenvector columns v0, v1, v2 of a symmetric 3×3.
-
-    Closed form, no iteration: the most separated eigenvalue from the trigonometric
-    solution of the characteristic cubic (the largest when det of the scaled deviator is
-    ≥ 0, else the smallest: it lies at least √3 p from the other two, p² = tr(B²)/6; the
-    cube root of the cubic is a polynomial fit plus a Newton step, not acos and cos), its
-    eigenvector from the rows of A − αI, then the other two from the exact 2×2
-    diagonalisation in the plane orthogonal to it. The cubic's roots lose digits next to
-    a double root, so only the far one is taken from it, and all eigenvalues come from
-    the orthonormal vectors (a Rayleigh quotient and the exact 2×2 eigenvalues): accurate
-    to round-off of |A|, also for repeated eigenvalues (the pair is resolved by the 2×2
-    step, which is exact for any gap). Tested against LAPACK.
-
-    Returns a 12-tuple: e0, e1, e2 (unsorted), then v0, v1, v2 (3 each).
+    Trigonometric solution of the characteristic cubic of the deviator B = A − qI,
+    p² = tr(B²)/6, r = det(B)/(2p³): the largest eigenvalue q + 2p x(r) when r ≥ 0, the
+    smallest q − 2p x(−r) when r < 0 (the cubic is odd), x the largest root of
+    4x³ − 3x = r (a polynomial fit and a Newton step, no acos or cos).
     """
-    a00, a11, a22, a01, a02, a12 = s
-    scale = max(abs(a00), abs(a11), abs(a22), abs(a01), abs(a02), abs(a12))
-    if not scale > 0.0:
-        return a00, a11, a22, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
-    unscale = 1.0
-    if scale < _EIG_SMALL or scale > _EIG_LARGE:
-        unscale = scale
-        inv = 1.0 / scale
-        a00, a11, a22, a01, a02, a12 = (
-            a00 * inv, a11 * inv, a22 * inv, a01 * inv, a02 * inv, a12 * inv
-        )  # fmt: skip
     q = (a00 + a11 + a22) * (1.0 / 3.0)
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
     p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) * (
         1.0 / 6.0
     )
-    alpha = q
-    if p2 > 0.0:
-        p = math.sqrt(p2)
-        det_b = (
-            b00 * (b11 * b22 - a12 * a12)
-            - a01 * (a01 * b22 - a12 * a02)
-            + a02 * (a01 * a12 - b11 * a02)
-        )
-        r = min(1.0, max(-1.0, 0.5 * det_b / (p2 * p)))
-        # r >= 0: the largest eigenvalue q + 2p x(r) is the far one; r < 0: the smallest,
-        # q - 2p x(-r) (the cubic is odd)
-        alpha = q + math.copysign(2.0 * p * _largest_cubic_root(abs(r)), r)
-    e0, e1, e2 = _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha)
-    # an orthonormal pair (u, w) spanning the plane orthogonal to e
-    if abs(e0) > abs(e1):
-        k = 1.0 / math.sqrt(e0 * e0 + e2 * e2)
-        u0, u1, u2 = -e2 * k, 0.0, e0 * k
-    else:
-        k = 1.0 / math.sqrt(e1 * e1 + e2 * e2)
-        u0, u1, u2 = 0.0, e2 * k, -e1 * k
-    w0, w1, w2 = _cross(e0, e1, e2, u0, u1, u2)
+    p = math.sqrt(p2)
+    det_b = (
+        b00 * (b11 * b22 - a12 * a12)
+        - a01 * (a01 * b22 - a12 * a02)
+        + a02 * (a01 * a12 - b11 * a02)
+    )
+    r = min(1.0, max(-1.0, 0.5 * det_b / (p2 * p if p2 > 0.0 else 1.0)))
+    ra = abs(r)
+    c = _CUBIC_ROOT_FIT
+    x = ((((((c[7] * ra + c[6]) * ra + c[5]) * ra + c[4]) * ra + c[3]) * ra + c[2]) * ra
+         + c[1]) * ra + c[0]  # fmt: skip
+    x = x - (4.0 * x * x * x - 3.0 * x - ra) / (12.0 * x * x - 3.0)
+    return q + math.copysign(2.0 * p * x, r)
+
+
+@njit(inline="always", **_JIT)
+def _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha):
+    """Unit eigenvector of a symmetric 3×3 for its most separated eigenvalue ``alpha``.
+
+    The rows of A − αI span the plane orthogonal to the eigenvector; the largest of their
+    three cross products is the best-conditioned normal of that plane (A = αI: e_x).
+    """
+    m00, m11, m22 = a00 - alpha, a11 - alpha, a22 - alpha
+    x0, x1, x2 = a01 * a12 - a02 * m11, a02 * a01 - m00 * a12, m00 * m11 - a01 * a01
+    y0, y1, y2 = a01 * m22 - a02 * a12, a02 * a02 - m00 * m22, m00 * a12 - a01 * a02
+    z0, z1, z2 = m11 * m22 - a12 * a12, a12 * a02 - a01 * m22, a01 * a12 - m11 * a02
+    nx = x0 * x0 + x1 * x1 + x2 * x2
+    ny = y0 * y0 + y1 * y1 + y2 * y2
+    nz = z0 * z0 + z1 * z1 + z2 * z2
+    take = ny > nx
+    x0, x1, x2, nx = (y0 if take else x0), (y1 if take else x1), (y2 if take else x2), max(nx, ny)
+    take = nz > nx
+    x0, x1, x2, nx = (z0 if take else x0), (z1 if take else x1), (z2 if take else x2), max(nx, nz)
+    some = nx > 0.0
+    inv = 1.0 / math.sqrt(nx if some else 1.0)
+    return (x0 * inv if some else 1.0), (x1 * inv if some else 0.0), (x2 * inv if some else 0.0)
+
+
+@njit(inline="always", **_JIT)
+def _plane_basis(e0, e1, e2):
+    """An orthonormal pair (u, w) spanning the plane orthogonal to the unit vector e."""
+    first = abs(e0) > abs(e1)
+    k = 1.0 / math.sqrt(e0 * e0 + e2 * e2 if first else e1 * e1 + e2 * e2)
+    u0 = -e2 * k if first else 0.0
+    u1 = 0.0 if first else e2 * k
+    u2 = e0 * k if first else -e1 * k
+    return u0, u1, u2, e1 * u2 - e2 * u1, e2 * u0 - e0 * u2, e0 * u1 - e1 * u0
+
+
+@njit(inline="always", **_JIT)
+def _pair_rotation(a00, a11, a22, a01, a02, a12, e0, e1, e2, u0, u1, u2, w0, w1, w2):
+    """Eigenvalues (far, larger, smaller) and the rotation (c, s) of the 2×2 block.
+
+    A restricted to span(u, w) is [[m00, m01], [m01, m11]]: eigenvalues mean ± radius,
+    the larger one's vector c u + s w with (c, s) along (m01, big − m00) or
+    (big − m11, m01), whichever is longer (the other may be all cancellation); the
+    smaller one's is c w − s u. The far eigenvalue is the Rayleigh quotient eᵀAe.
+    """
     au0, au1, au2 = _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2)
     aw0, aw1, aw2 = _sym_apply(a00, a11, a22, a01, a02, a12, w0, w1, w2)
     ae0, ae1, ae2 = _sym_apply(a00, a11, a22, a01, a02, a12, e0, e1, e2)
     m00 = u0 * au0 + u1 * au1 + u2 * au2
     m11 = w0 * aw0 + w1 * aw1 + w2 * aw2
     m01 = 0.5 * (u0 * aw0 + u1 * aw1 + u2 * aw2 + w0 * au0 + w1 * au1 + w2 * au2)
-    # the 2×2 block [[m00, m01], [m01, m11]]: eigenvalues mean ± radius; the vector of
-    # the larger one is (m01, big - m00) or (big - m11, m01), whichever is longer (the
-    # other may be all cancellation)
     mean = 0.5 * (m00 + m11)
-    radius = math.hypot(0.5 * (m00 - m11), m01)
+    half = 0.5 * (m00 - m11)
+    radius = math.sqrt(half * half + m01 * m01)
     big = mean + radius
-    c0, c1 = m01, big - m00
-    d0, d1 = big - m11, m01
+    c0, c1, d0, d1 = m01, big - m00, big - m11, m01
     nc = c0 * c0 + c1 * c1
     nd = d0 * d0 + d1 * d1
-    if nd > nc:
-        c0, c1, nc = d0, d1, nd
-    if nc > 0.0:
-        k = 1.0 / math.sqrt(nc)
-        c0, c1 = c0 * k, c1 * k
-    else:  # m = mean I: any pair
-        c0, c1 = 1.0, 0.0
+    take = nd > nc
+    c0, c1, nc = (d0 if take else c0), (d1 if take else c1), max(nc, nd)
+    some = nc > 0.0  # else the block is mean I: any pair
+    k = 1.0 / math.sqrt(nc if some else 1.0)
+    far = e0 * ae0 + e1 * ae1 + e2 * ae2
+    return far, big, mean - radius, (c0 * k if some else 1.0), (c1 * k if some else 0.0)
+
+
+@njit(inline="always", **_JIT)
+def _vectors(e0, e1, e2, u0, u1, u2, w0, w1, w2, c, s):
+    """The 9 components of the eigenvector columns e, c u + s w, c w − s u."""
     return (
-        unscale * (e0 * ae0 + e1 * ae1 + e2 * ae2),
-        unscale * big,
-        unscale * (mean - radius),
-        e0,
-        e1,
-        e2,
-        c0 * u0 + c1 * w0,
-        c0 * u1 + c1 * w1,
-        c0 * u2 + c1 * w2,
-        c0 * w0 - c1 * u0,
-        c0 * w1 - c1 * u1,
-        c0 * w2 - c1 * u2,
+        e0, e1, e2,
+        c * u0 + s * w0, c * u1 + s * w1, c * u2 + s * w2,
+        c * w0 - s * u0, c * w1 - s * u1, c * w2 - s * u2,
+    )  # fmt: skip
+
+
+#: Largest-entry magnitudes the closed form takes without rescaling: p³ ~ |A|³ must
+#: neither over- nor underflow. Stresses in Pa are always inside.
+SAFE_RANGE = (1e-90, 1e90)
+
+
+@njit(**_JIT)
+def _eigh3(s):
+    """Eigenvalues (e0, e1, e2) and eigenvector columns v0, v1, v2 of a symmetric 3×3.
+
+    Closed form, no iteration: the most separated eigenvalue from the characteristic
+    cubic (:func:`_far_root`), its eigenvector from the rows of A − αI, then the other
+    two from the exact 2×2 diagonalisation in the plane orthogonal to it. The cubic's
+    roots lose digits next to a double root, so only the far one is taken from it, and
+    all eigenvalues come from the orthonormal vectors (a Rayleigh quotient and the exact
+    2×2 eigenvalues): accurate to round-off of |A|, also for repeated eigenvalues (the
+    pair is resolved by the 2×2 step, which is exact for any gap). Tested against
+    LAPACK. A matrix outside :data:`SAFE_RANGE` is scaled by its largest entry first.
+
+    Returns a 12-tuple: e0, e1, e2 (unsorted), then v0, v1, v2 (3 each).
+    """
+    a00, a11, a22, a01, a02, a12 = s
+    size = max(abs(a00), abs(a11), abs(a22), abs(a01), abs(a02), abs(a12))
+    if not size > 0.0:
+        return a00, a11, a22, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    unscale = 1.0
+    if size < SAFE_RANGE[0] or size > SAFE_RANGE[1]:
+        unscale = size
+        inv = 1.0 / size
+        a00, a11, a22, a01, a02, a12 = (
+            a00 * inv, a11 * inv, a22 * inv, a01 * inv, a02 * inv, a12 * inv
+        )  # fmt: skip
+    alpha = _far_root(a00, a11, a22, a01, a02, a12)
+    e0, e1, e2 = _far_eigenvector(a00, a11, a22, a01, a02, a12, alpha)
+    u0, u1, u2, w0, w1, w2 = _plane_basis(e0, e1, e2)
+    far, big, small, c, sn = _pair_rotation(
+        a00, a11, a22, a01, a02, a12, e0, e1, e2, u0, u1, u2, w0, w1, w2
+    )
+    return (unscale * far, unscale * big, unscale * small) + _vectors(
+        e0, e1, e2, u0, u1, u2, w0, w1, w2, c, sn
     )
 
 
@@ -676,19 +690,16 @@ def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cuto
 
 
 # --------------------------------------------------------------------------------------
-# Batched eigen-decomposition: the closed form of _eigh3 as four branch-free loops over
-# a block of trial stresses, in structure-of-arrays layout. Each loop is small and
-# free of branches, so LLVM turns it into SIMD code (AVX2/AVX-512: 4 or 8 particles per
-# instruction) and the long chain of divisions and square roots of one decomposition
-# overlaps with the next ones; one decomposition takes about a tenth of the scalar
-# _eigh3's time. No rescaling: entries must lie within BATCH_RANGE in magnitude (p³ ~
-# |A|³ must neither over- nor underflow); return_batch sends others to _eigh3.
+# Batched eigen-decomposition: the steps of _eigh3 as four loops over a block of trial
+# stresses in structure-of-arrays layout. Each loop body is a branch-free step, so LLVM
+# turns the loop into SIMD code (AVX2 / AVX-512: 4 or 8 matrices an instruction) and the
+# long chain of divisions and square roots of one decomposition overlaps with the
+# others': a decomposition takes about a tenth of the scalar _eigh3's time. No
+# rescaling: return_batch sends matrices outside SAFE_RANGE to _eigh3.
 # --------------------------------------------------------------------------------------
 
 #: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`).
 BATCH_ROWS = (6, 1, 3, 6, 5)
-#: Largest-entry magnitudes the batched decomposition takes without rescaling.
-BATCH_RANGE = (1e-90, 1e90)
 
 
 def batch_work(threads, block):
@@ -707,103 +718,33 @@ def batch_work(threads, block):
 @njit(**_JIT)
 def _batch_far_root(a, alpha, n):
     for i in range(n):
-        a00, a11, a22, a01, a02, a12 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
-        q = (a00 + a11 + a22) * (1.0 / 3.0)
-        b00, b11, b22 = a00 - q, a11 - q, a22 - q
-        p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) * (
-            1.0 / 6.0
-        )
-        p = math.sqrt(p2)
-        det_b = (
-            b00 * (b11 * b22 - a12 * a12)
-            - a01 * (a01 * b22 - a12 * a02)
-            + a02 * (a01 * a12 - b11 * a02)
-        )
-        r = 0.5 * det_b / (p2 * p if p2 > 0.0 else 1.0)
-        r = min(1.0, max(-1.0, r))
-        ra = abs(r)
-        c = _CUBIC_ROOT_FIT
-        x = ((((((c[7] * ra + c[6]) * ra + c[5]) * ra + c[4]) * ra + c[3]) * ra + c[2]) * ra
-             + c[1]) * ra + c[0]  # fmt: skip
-        x = x - (4.0 * x * x * x - 3.0 * x - ra) / (12.0 * x * x - 3.0)
-        alpha[0, i] = q + math.copysign(2.0 * p * x, r)
+        alpha[0, i] = _far_root(a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i])
 
 
 @njit(**_JIT)
 def _batch_far_vector(a, alpha, e, n):
     for i in range(n):
-        a01, a02, a12 = a[3, i], a[4, i], a[5, i]
-        m00, m11, m22 = a[0, i] - alpha[0, i], a[1, i] - alpha[0, i], a[2, i] - alpha[0, i]
-        x0, x1, x2 = a01 * a12 - a02 * m11, a02 * a01 - m00 * a12, m00 * m11 - a01 * a01
-        y0, y1, y2 = a01 * m22 - a02 * a12, a02 * a02 - m00 * m22, m00 * a12 - a01 * a02
-        z0, z1, z2 = m11 * m22 - a12 * a12, a12 * a02 - a01 * m22, a01 * a12 - m11 * a02
-        nx = x0 * x0 + x1 * x1 + x2 * x2
-        ny = y0 * y0 + y1 * y1 + y2 * y2
-        nz = z0 * z0 + z1 * z1 + z2 * z2
-        take = ny > nx
-        x0, x1, x2, nx = (
-            (y0 if take else x0),
-            (y1 if take else x1),
-            (y2 if take else x2),
-            max(nx, ny),
+        e[0, i], e[1, i], e[2, i] = _far_eigenvector(
+            a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i], alpha[0, i]
         )
-        take = nz > nx
-        x0, x1, x2, nx = (
-            (z0 if take else x0),
-            (z1 if take else x1),
-            (z2 if take else x2),
-            max(nx, nz),
-        )
-        some = nx > 0.0  # else A = alpha I: any vector
-        inv = 1.0 / math.sqrt(nx if some else 1.0)
-        e[0, i] = x0 * inv if some else 1.0
-        e[1, i] = x1 * inv if some else 0.0
-        e[2, i] = x2 * inv if some else 0.0
 
 
 @njit(**_JIT)
 def _batch_plane(e, uw, n):
     for i in range(n):
-        e0, e1, e2 = e[0, i], e[1, i], e[2, i]
-        first = abs(e0) > abs(e1)
-        k = 1.0 / math.sqrt(e0 * e0 + e2 * e2 if first else e1 * e1 + e2 * e2)
-        u0 = -e2 * k if first else 0.0
-        u1 = 0.0 if first else e2 * k
-        u2 = e0 * k if first else -e1 * k
-        uw[0, i], uw[1, i], uw[2, i] = u0, u1, u2
-        uw[3, i] = e1 * u2 - e2 * u1
-        uw[4, i] = e2 * u0 - e0 * u2
-        uw[5, i] = e0 * u1 - e1 * u0
+        uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i] = _plane_basis(
+            e[0, i], e[1, i], e[2, i]
+        )
 
 
 @njit(**_JIT)
 def _batch_pair(a, e, uw, out, n):
     for i in range(n):
-        a00, a11, a22, a01, a02, a12 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
-        e0, e1, e2 = e[0, i], e[1, i], e[2, i]
-        u0, u1, u2, w0, w1, w2 = uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i]
-        au0, au1, au2 = _sym_apply(a00, a11, a22, a01, a02, a12, u0, u1, u2)
-        aw0, aw1, aw2 = _sym_apply(a00, a11, a22, a01, a02, a12, w0, w1, w2)
-        ae0, ae1, ae2 = _sym_apply(a00, a11, a22, a01, a02, a12, e0, e1, e2)
-        m00 = u0 * au0 + u1 * au1 + u2 * au2
-        m11 = w0 * aw0 + w1 * aw1 + w2 * aw2
-        m01 = 0.5 * (u0 * aw0 + u1 * aw1 + u2 * aw2 + w0 * au0 + w1 * au1 + w2 * au2)
-        mean = 0.5 * (m00 + m11)
-        half = 0.5 * (m00 - m11)
-        radius = math.sqrt(half * half + m01 * m01)
-        big = mean + radius
-        c0, c1, d0, d1 = m01, big - m00, big - m11, m01
-        nc = c0 * c0 + c1 * c1
-        nd = d0 * d0 + d1 * d1
-        take = nd > nc
-        c0, c1, nc = (d0 if take else c0), (d1 if take else c1), max(nc, nd)
-        some = nc > 0.0
-        k = 1.0 / math.sqrt(nc if some else 1.0)
-        out[0, i] = e0 * ae0 + e1 * ae1 + e2 * ae2
-        out[1, i] = big
-        out[2, i] = mean - radius
-        out[3, i] = c0 * k if some else 1.0
-        out[4, i] = c1 * k if some else 0.0
+        out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = _pair_rotation(
+            a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i],
+            e[0, i], e[1, i], e[2, i],
+            uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i],
+        )  # fmt: skip
 
 
 @njit(**_JIT)
@@ -814,8 +755,8 @@ def eigh3_batch(trial, alpha, e, uw, out, n):
     are work space and results (see :func:`batch_work`, one thread's slice each). After
     the call, eigenvalue k of particle i is ``out[k, i]`` for k = 0, 1, 2 with the
     vectors ``e[:, i]``, ``c u + s w`` and ``c w - s u`` (``c, s = out[3:5, i]``,
-    ``u, w = uw[:3, i], uw[3:, i]``); :func:`return_batch` reads them. The same closed
-    form as the scalar decomposition, to round-off.
+    ``u, w = uw[:3, i], uw[3:, i]``); :func:`return_batch` reads them. The same steps
+    as :func:`_eigh3`, for matrices inside :data:`SAFE_RANGE`.
     """
     _batch_far_root(trial, alpha, n)
     _batch_far_vector(trial, alpha, e, n)
@@ -824,39 +765,47 @@ def eigh3_batch(trial, alpha, e, uw, out, n):
 
 
 @njit(**_JIT)
+def read_stress(stress, p):
+    """Particle p's symmetric stress from an (N, 3, 3) array as a 6-tuple."""
+    return (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
+            stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
+
+
+@njit(**_JIT)
+def write_stress(stress, p, s):
+    """Store the 6-tuple ``s`` as particle p's symmetric stress in an (N, 3, 3) array."""
+    stress[p, 0, 0] = s[0]
+    stress[p, 1, 1] = s[1]
+    stress[p, 2, 2] = s[2]
+    stress[p, 0, 1] = stress[p, 1, 0] = s[3]
+    stress[p, 0, 2] = stress[p, 2, 0] = s[4]
+    stress[p, 1, 2] = stress[p, 2, 1] = s[5]
+
+
+@njit(**_JIT)
 def return_batch(lo, n, trial, e, uw, out, stress, codes, lam, G, sin_phi, cos_phi, cohesion,
                  sin_psi, tension_cutoff):  # fmt: skip
     """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
 
     Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i`` and
-    ``codes`` its return code. Trials outside :data:`BATCH_RANGE` are decomposed again
+    ``codes`` its return code. Trials outside :data:`SAFE_RANGE` are decomposed again
     by the scalar, rescaling :func:`_eigh3`.
     """
     for i in range(n):
         s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
         size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
-        if BATCH_RANGE[0] <= size <= BATCH_RANGE[1]:
-            c, sn = out[3, i], out[4, i]
-            u0, u1, u2, w0, w1, w2 = uw[0, i], uw[1, i], uw[2, i], uw[3, i], uw[4, i], uw[5, i]
-            eig = (
-                out[0, i], out[1, i], out[2, i],
-                e[0, i], e[1, i], e[2, i],
-                c * u0 + sn * w0, c * u1 + sn * w1, c * u2 + sn * w2,
-                c * w0 - sn * u0, c * w1 - sn * u1, c * w2 - sn * u2,
+        if SAFE_RANGE[0] <= size <= SAFE_RANGE[1]:
+            eig = (out[0, i], out[1, i], out[2, i]) + _vectors(
+                e[0, i], e[1, i], e[2, i], uw[0, i], uw[1, i], uw[2, i],
+                uw[3, i], uw[4, i], uw[5, i], out[3, i], out[4, i],
             )  # fmt: skip
         else:
             eig = _eigh3(s)
         s, code = _return_with_eigen(
             s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
         )
-        p = lo + i
-        stress[p, 0, 0] = s[0]
-        stress[p, 1, 1] = s[1]
-        stress[p, 2, 2] = s[2]
-        stress[p, 0, 1] = stress[p, 1, 0] = s[3]
-        stress[p, 0, 2] = stress[p, 2, 0] = s[4]
-        stress[p, 1, 2] = stress[p, 2, 1] = s[5]
-        codes[p] = code
+        write_stress(stress, lo + i, s)
+        codes[lo + i] = code
 
 
 # --------------------------------------------------------------------------------------
