@@ -91,7 +91,7 @@ def kernel_times(sim, dt) -> dict:
     inv_h = 1.0 / g.h
     gravity, omega, damping = sim._body(sim.t)
     shape = np.asarray(g.shape, np.int64)
-    state = {name: getattr(p, name).copy() for name in ("x", "v", "C", "vol", "J", "stress")}
+    state = {name: getattr(p, name).copy() for name in ("x", "v", "C", "vol", "J", "gap", "stress")}
 
     def restore():  # the same particles for every G2P call (not timed)
         for name, value in state.items():
@@ -99,8 +99,8 @@ def kernel_times(sim, dt) -> dict:
 
     def g2p():
         (mpm.g2p_3d if three else mpm.g2p_2d)(
-            p.x, p.v, p.C, p.vol, p.J, p.stress, p.codes, g.velocity, g.origin, inv_h, dt,
-            sim.stress_arguments, sim.starts, g.g2p_work,
+            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.origin, inv_h,
+            dt, sim.stress_arguments, sim.starts, g.g2p_work,
         )  # fmt: skip
 
     parts = {

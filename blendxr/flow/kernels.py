@@ -72,7 +72,9 @@ import numpy as np
 from numba import njit, prange
 
 from .mohr_coulomb import (
+    close_gap,
     eigh3_batch,
+    open_gap,
     read_stress,
     return_batch,
     stress_step,
@@ -719,18 +721,24 @@ def grid_update_3d(
 
 
 @njit(**_JIT_SERIAL)
-def _stress_update(stress, codes, p, l, dt, material):
-    """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``."""
+def _stress_update(stress, codes, gap, p, l, dt, material):
+    """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``,
+    closing and opening its contact gap (``mohr_coulomb.close_gap``)."""
+    K = material[0]
+    l, g = close_gap(l, dt, gap[p])
+    old = read_stress(stress, p)
     s, code = stress_step(
-        read_stress(stress, p), l, dt, material[0], material[1], material[2], material[3],
-        material[4], material[5], material[6],
+        old, l, dt, K, material[1], material[2], material[3], material[4], material[5],
+        material[6],
     )  # fmt: skip
     write_stress(stress, p, s)
     codes[p] = code
+    trial_trace = old[0] + old[1] + old[2] + 3.0 * K * dt * (l[0] + l[4] + l[8])
+    gap[p] = open_gap(g, code, trial_trace, s[0] + s[1] + s[2], K)
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material):
+def _g2p_range_2d(lo, hi, x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material):
     """G2P and stress update of particles lo:hi (see :func:`g2p_2d`)."""
     nx, ny = vel.shape[0], vel.shape[1]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
@@ -779,12 +787,13 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt
         v[p, 0] = v0
         v[p, 1] = v1
         l = (c00, c01, 0.0, c10, c11, 0.0, 0.0, 0.0, 0.0)
-        _stress_update(stress, codes, p, l, dt, material)
+        _stress_update(stress, codes, gap, p, l, dt, material)
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, G, trial):
-    """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``."""
+def _g2p_block_3d(lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, trial):
+    """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``
+    (after a compression closed their contact gaps, which ``gap`` receives)."""
     nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
     for p in range(lo, hi):
@@ -879,6 +888,7 @@ def _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, 
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
+        l, gap[p] = close_gap(l, dt, gap[p])
         s = trial_stress(read_stress(stress, p), l, dt, lam, G)
         k = p - lo
         for r in range(6):
@@ -886,7 +896,7 @@ def _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, 
 
 
 @njit(**_JIT)
-def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, starts, work):
+def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material, starts, work):
     """Gather velocities and affine matrices, advect, update the stress (2-D plane strain).
 
     Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``);
@@ -908,6 +918,9 @@ def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, sta
         Receives APIC affine matrices (velocity gradients) [1/s].
     vol, J : ndarray of float64, shape (N,)
         Current volumes [m^3] and Jacobians, updated in place.
+    gap : ndarray of float64, shape (N,)
+        Volume lost to contact per unit volume (``mohr_coulomb.close_gap``), >= 0,
+        updated in place.
     stress : ndarray of float64, shape (N, 3, 3)
         Cauchy stresses [Pa], tension positive, updated in place.
     codes : ndarray of int8, shape (N,)
@@ -929,13 +942,13 @@ def g2p_2d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, sta
     """
     for t in prange(starts.shape[0] - 1):
         _g2p_range_2d(
-            starts[t], starts[t + 1], x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt,
-            material,
+            starts[t], starts[t + 1], x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h,
+            dt, material,
         )  # fmt: skip
 
 
 @njit(**_JIT)
-def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, starts, work):
+def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material, starts, work):
     """Gather velocities and affine matrices, advect, update the stress (3-D).
 
     As :func:`g2p_2d` in three dimensions.
@@ -950,6 +963,8 @@ def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, sta
         Receives APIC affine matrices (velocity gradients) [1/s].
     vol, J : ndarray of float64, shape (N,)
         Current volumes [m^3] and Jacobians, updated in place (``*= det(I + dt C)``).
+    gap : ndarray of float64, shape (N,)
+        Volume lost to contact per unit volume, >= 0, updated in place.
     stress : ndarray of float64, shape (N, 3, 3)
         Cauchy stresses [Pa], tension positive, updated in place.
     codes : ndarray of int8, shape (N,)
@@ -978,10 +993,12 @@ def g2p_3d(x, v, C, vol, J, stress, codes, vel, origin, inv_h, dt, material, sta
         for lo in range(starts[t], starts[t + 1], block):
             hi = min(lo + block, starts[t + 1])
             n = hi - lo
-            _g2p_block_3d(lo, hi, x, v, C, vol, J, stress, vel, origin, inv_h, dt, lam, G, trial[t])
+            _g2p_block_3d(
+                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, trial[t]
+            )
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(
-                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, lam, G, material[2],
+                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, gap, lam, G, material[2],
                 material[3], material[4], material[5], material[6],
             )  # fmt: skip
 

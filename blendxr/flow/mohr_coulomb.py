@@ -97,8 +97,10 @@ __all__ = [
     "p_wave_speed",
     "BATCH_ROWS",
     "SAFE_RANGE",
+    "close_gap",
     "batch_work",
     "eigh3_batch",
+    "open_gap",
     "principal_stresses",
     "read_stress",
     "return_batch",
@@ -783,13 +785,14 @@ def write_stress(stress, p, s):
 
 
 @njit(**_JIT)
-def return_batch(lo, n, trial, e, uw, out, stress, codes, lam, G, sin_phi, cos_phi, cohesion,
-                 sin_psi, tension_cutoff):  # fmt: skip
+def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, lam, G, sin_phi, cos_phi,
+                 cohesion, sin_psi, tension_cutoff):  # fmt: skip
     """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
 
-    Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i`` and
-    ``codes`` its return code. Trials outside :data:`SAFE_RANGE` are decomposed again
-    by the scalar, rescaling :func:`_eigh3`.
+    Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i``,
+    ``codes`` its return code and ``gap`` (N) what an apex or cap return adds to it
+    (:func:`open_gap`). Trials outside :data:`SAFE_RANGE` are decomposed again by the
+    scalar, rescaling :func:`_eigh3`.
     """
     for i in range(n):
         s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
@@ -801,11 +804,56 @@ def return_batch(lo, n, trial, e, uw, out, stress, codes, lam, G, sin_phi, cos_p
             )  # fmt: skip
         else:
             eig = _eigh3(s)
-        s, code = _return_with_eigen(
+        new, code = _return_with_eigen(
             s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
         )
-        write_stress(stress, lo + i, s)
+        write_stress(stress, lo + i, new)
         codes[lo + i] = code
+        gap[lo + i] = open_gap(
+            gap[lo + i], code, s[0] + s[1] + s[2], new[0] + new[1] + new[2], lam + 2.0 * G / 3.0
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Lost contact: the volume a granular material gains at the apex or the tension cap
+# --------------------------------------------------------------------------------------
+# At the apex (and at the tension cap) a volumetric extension is plastic: the trial's
+# extra mean stress is returned, the volume gained is kept. Compressing again would be
+# elastic from there on, and the pressure it builds would hold the material at the
+# larger volume: the volume ratchets up with every extension (measured: +8 % a
+# revolution of a Tote bed, +40 % in five). A cohesionless granular material gains that
+# volume by losing contacts, and gives it back without stress when the grains close up
+# again. ``gap`` is that volume per unit volume (the volumetric plastic strain taken at
+# the apex or cap, >= 0): close_gap lets a compression first close the gap, stress-free,
+# and only the rest of it build pressure; open_gap adds what a step's apex or cap
+# return took. Shear, rotation and the dense material's elasticity are unchanged, and a
+# particle that never reaches the apex never has a gap.
+
+
+@njit(**_JIT)
+def close_gap(l, dt, gap):
+    """Velocity gradient for the elastic trial, and the gap left, after a compression.
+
+    ``l`` is the velocity gradient 9-tuple, ``dt`` the step, ``gap`` >= 0. A volumetric
+    compression ``dt tr(L) < 0`` first closes the gap: ``closed = min(gap, -dt tr L)``;
+    the trial then sees ``L + closed / (3 dt) I`` (the deviatoric part and the spin as
+    they were). Returns ``(l, gap - closed)``.
+    """
+    squeeze = -dt * (l[0] + l[4] + l[8])
+    if not (gap > 0.0 and squeeze > 0.0):
+        return l, gap
+    closed = min(gap, squeeze)
+    d = closed / (3.0 * dt)
+    return (l[0] + d, l[1], l[2], l[3], l[4] + d, l[5], l[6], l[7], l[8] + d), gap - closed
+
+
+@njit(**_JIT)
+def open_gap(gap, code, trial_trace, new_trace, K):
+    """Gap after a step's return: plus the volumetric plastic strain of an apex or cap
+    return, ``(tr σ_trial − tr σ_new) / (3K)`` (the trace of C:Δε_p is 3K tr Δε_p)."""
+    if code == APEX or code == TENSION_CAP:
+        return gap + max(0.0, (trial_trace - new_trace) / (3.0 * K))
+    return gap
 
 
 # --------------------------------------------------------------------------------------

@@ -154,7 +154,7 @@ class Material:
 class Particles:
     """Particle arrays of one run (structure of arrays, float64)."""
 
-    FIELDS = ("x", "v", "C", "stress", "mass", "vol0", "vol", "J", "colour")
+    FIELDS = ("x", "v", "C", "stress", "gap", "mass", "vol0", "vol", "J", "colour")
 
     def __init__(self, positions: np.ndarray, volume: float, density: float):
         n, d = positions.shape
@@ -163,6 +163,7 @@ class Particles:
         self.v = np.zeros((n, d))
         self.C = np.zeros((n, d, d))  # also the velocity gradient (MLS-MPM)
         self.stress = np.zeros((n, 3, 3))
+        self.gap = np.zeros(n)  # volume lost to contact (mohr_coulomb.close_gap)
         self.vol0 = np.full(n, float(volume))
         self.vol = self.vol0.copy()
         self.J = np.ones(n)
@@ -533,8 +534,8 @@ class FlowSimulation:
         # G2P updates the stress too; walls: exact distances below, not interpolated ones
         # (biased at convex walls)
         (mpm.g2p_3d if three else mpm.g2p_2d)(
-            p.x, p.v, p.C, p.vol, p.J, p.stress, p.codes, g.velocity, g.origin, inv_h, dt,
-            self.stress_arguments, self.starts, g.g2p_work,
+            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.origin, inv_h,
+            dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
