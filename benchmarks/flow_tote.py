@@ -18,8 +18,10 @@ cost being measured). The unscaled case is extrapolated from the measured time p
 turning step (a step costs the same whatever E; the unscaled run needs sqrt(scaling)
 times as many) unless ``--unscaled`` runs it too.
 
-Run: ``python benchmarks/flow_tote.py [--unscaled] [--skip-periodicity]`` (about 30
-minutes on 2 cores; ``--unscaled`` adds about 40). Writes
+``--lost-contact`` turns on ``solver.lost_contact`` (docs/flow.md).
+
+Run: ``python benchmarks/flow_tote.py [--unscaled] [--skip-periodicity] [--lost-contact]``
+(about 30 minutes on 2 cores; ``--unscaled`` adds about 60). Writes
 ``benchmarks/results/flow_tote.{json,md}``.
 """
 
@@ -52,6 +54,9 @@ PERIODICITY_CELL = 0.0125
 PAPER_CELL = 0.0075
 
 
+LOST_CONTACT = [False]  # set by --lost-contact
+
+
 def tote(fraction, cell, scaling, revolutions, phases=12):
     return {
         "name": f"tote-{round(fraction * 100)}",
@@ -64,6 +69,7 @@ def tote(fraction, cell, scaling, revolutions, phases=12):
             "settle_time": 0.5,
             "revolutions": revolutions,
             "checkpoint_every": 1e9,
+            "lost_contact": LOST_CONTACT[0],
         },
     }
 
@@ -183,7 +189,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--unscaled", action="store_true", help="also run the unscaled case")
     parser.add_argument("--skip-periodicity", action="store_true", help="skip part 1")
+    parser.add_argument(
+        "--lost-contact", action="store_true", help="solver.lost_contact on (docs/flow.md)"
+    )
     args = parser.parse_args()
+    LOST_CONTACT[0] = args.lost_contact
     quiet = wait_for_quiet()
     info = machine()
     info["quiet_wait"] = quiet
@@ -244,6 +254,7 @@ def main() -> None:
     md = (
         "<!-- written by benchmarks/flow_tote.py -->\n"
         f"Machine: {machine_line(info)}.\n\n"
+        f"`solver.lost_contact = {str(args.lost_contact).lower()}`.\n\n"
         "Periodicity (eq. 30) between revolutions 2 and 3, Tote at 10 rpm, "
         f"E/{DEFAULT_SCALING:g}; 12 phase bins at 12.5 mm, 36 at 7.5 mm. Noise part: eq. "
         "(30) between the phase averages of the even- and odd-numbered particles of "
@@ -256,7 +267,8 @@ def main() -> None:
         "plus two revolutions; ms/step over revolution 2.\n\n" + text2 + "\n"
     )
     write_atomic(RESULTS / "flow_tote.md", md)
-    write_json("flow_tote", {"machine": info, "periodicity": periodic, "paper": paper})
+    payload = {"machine": info, "lost_contact": args.lost_contact}
+    write_json("flow_tote", {**payload, "periodicity": periodic, "paper": paper})
 
 
 if __name__ == "__main__":

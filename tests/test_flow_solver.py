@@ -184,3 +184,10 @@ def test_out_of_range_scene_values_name_the_key(section, key, value, fragment):
     scene.setdefault(section, {})[key] = value
     with pytest.raises(SceneError, match=fragment.replace(".", r"\.")):
         solve_flow(scene, progress=False)
+
+
+def test_lost_contact_is_off_unless_the_scene_asks_for_it():
+    assert FlowSimulation(drum_scene(0.4)).stress_arguments[7] == 0.0
+    scene = drum_scene(0.4)
+    scene["solver"]["lost_contact"] = True
+    assert FlowSimulation(scene).stress_arguments[7] == 1.0

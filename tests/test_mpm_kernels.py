@@ -80,9 +80,11 @@ MATERIAL = (
     *(float(k) for k in mohr_coulomb.elastic_constants(3.65e4, 0.065)[:2]),
     math.sin(_PHI), math.cos(_PHI), 87.0, math.sin(_PSI), 87.0 / math.tan(_PHI),
 )  # fmt: skip
+#: The G2P kernels' material: MATERIAL and the lost-contact switch (on)
+G2P_MATERIAL = (*MATERIAL, 1.0)
 
 
-def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=MATERIAL, gap=None):
+def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None):
     """Run the numba G2P on copies; return (x, v, C, vol, J, stress, codes, gap)."""
     if stress is None:
         stress = np.zeros((len(x), 3, 3))

@@ -725,7 +725,9 @@ def _stress_update(stress, codes, gap, p, l, dt, material):
     """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``,
     closing and opening its contact gap (``mohr_coulomb.close_gap``)."""
     K = material[0]
-    l, g = close_gap(l, dt, gap[p])
+    g = gap[p]
+    if material[7] > 0.0:
+        l, g = close_gap(l, dt, g)
     old = read_stress(stress, p)
     s, code = stress_step(
         old, l, dt, K, material[1], material[2], material[3], material[4], material[5],
@@ -733,8 +735,9 @@ def _stress_update(stress, codes, gap, p, l, dt, material):
     )  # fmt: skip
     write_stress(stress, p, s)
     codes[p] = code
-    trial_trace = old[0] + old[1] + old[2] + 3.0 * K * dt * (l[0] + l[4] + l[8])
-    gap[p] = open_gap(g, code, trial_trace, s[0] + s[1] + s[2], K)
+    if material[7] > 0.0:
+        trial_trace = old[0] + old[1] + old[2] + 3.0 * K * dt * (l[0] + l[4] + l[8])
+        gap[p] = open_gap(g, code, trial_trace, s[0] + s[1] + s[2], K)
 
 
 @njit(**_JIT_SERIAL)
@@ -791,7 +794,9 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, gap, stress, codes, vel, origin, inv_
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_block_3d(lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, trial):
+def _g2p_block_3d(
+    lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, contact, trial
+):
     """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``
     (after a compression closed their contact gaps, which ``gap`` receives)."""
     nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
@@ -888,7 +893,8 @@ def _g2p_block_3d(lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, 
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        l, gap[p] = close_gap(l, dt, gap[p])
+        if contact:
+            l, gap[p] = close_gap(l, dt, gap[p])
         s = trial_stress(read_stress(stress, p), l, dt, lam, G)
         k = p - lo
         for r in range(6):
@@ -931,9 +937,10 @@ def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    material : tuple of 7 float
+    material : tuple of 8 float
         ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)`` as for
-        :func:`blendxr.flow.mohr_coulomb.update_stress`.
+        :func:`blendxr.flow.mohr_coulomb.update_stress`, then 1.0 to keep the volume
+        gained at the apex or cap as lost contact (``mohr_coulomb.close_gap``), else 0.0.
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
     work : tuple of ndarray
@@ -975,8 +982,9 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    material : tuple of 7 float
-        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)``.
+    material : tuple of 8 float
+        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, lost_contact)``
+        as for :func:`g2p_2d`.
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
     work : tuple of 5 ndarray of float64, shapes (T, rows, B)
@@ -987,6 +995,7 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
     """
     K, G = material[0], material[1]
     lam = K - 2.0 * G / 3.0
+    contact = material[7] > 0.0
     trial, alpha, e, uw, out = work
     block = trial.shape[2]
     for t in prange(starts.shape[0] - 1):
@@ -994,12 +1003,13 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
             hi = min(lo + block, starts[t + 1])
             n = hi - lo
             _g2p_block_3d(
-                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, trial[t]
-            )
+                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, contact,
+                trial[t],
+            )  # fmt: skip
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(
-                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, gap, lam, G, material[2],
-                material[3], material[4], material[5], material[6],
+                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, gap, contact, lam, G,
+                material[2], material[3], material[4], material[5], material[6],
             )  # fmt: skip
 
 

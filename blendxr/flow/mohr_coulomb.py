@@ -64,6 +64,13 @@ One step of :func:`update_stress`
     t = min(tension_cutoff, c cot φ) (t = tension_cutoff when φ = 0): a Rankine cap
     applied after the Mohr–Coulomb return, in the same eigenbasis, not a joint
     closest-point return. It reports code 5 when it lowered a stress.
+(e) Lost contact, optional (:func:`close_gap`, :func:`open_gap`, used by the MPM
+    kernels when the scene sets ``solver.lost_contact``; the single-particle
+    :func:`update_stress` has no gap). The volumetric plastic strain of
+    an apex or cap return is kept as the particle's gap; a later compression closes the
+    gap first, stress-free, and only the rest enters the elastic trial. Without it the
+    volume of a flowing layer ratchets up (extension at the apex is free, compression
+    elastic).
 
 Eigen-decomposition without allocation: when σxz = σyz = 0 after the elastic trial (always
 the case in plane strain, where W and D have no z coupling, since the Cayley rotation then
@@ -785,13 +792,13 @@ def write_stress(stress, p, s):
 
 
 @njit(**_JIT)
-def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, lam, G, sin_phi, cos_phi,
-                 cohesion, sin_psi, tension_cutoff):  # fmt: skip
+def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, contact, lam, G, sin_phi,
+                 cos_phi, cohesion, sin_psi, tension_cutoff):  # fmt: skip
     """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
 
     Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i``,
-    ``codes`` its return code and ``gap`` (N) what an apex or cap return adds to it
-    (:func:`open_gap`). Trials outside :data:`SAFE_RANGE` are decomposed again by the
+    ``codes`` its return code and, if ``contact``, ``gap`` (N) what an apex or cap return
+    adds to it (:func:`open_gap`). Trials outside :data:`SAFE_RANGE` are decomposed again by the
     scalar, rescaling :func:`_eigh3`.
     """
     for i in range(n):
@@ -809,9 +816,11 @@ def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, lam, G, sin_phi, 
         )
         write_stress(stress, lo + i, new)
         codes[lo + i] = code
-        gap[lo + i] = open_gap(
-            gap[lo + i], code, s[0] + s[1] + s[2], new[0] + new[1] + new[2], lam + 2.0 * G / 3.0
-        )
+        if contact:
+            gap[lo + i] = open_gap(
+                gap[lo + i], code, s[0] + s[1] + s[2], new[0] + new[1] + new[2],
+                lam + 2.0 * G / 3.0,
+            )  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------

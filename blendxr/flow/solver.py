@@ -83,6 +83,9 @@ class Material:
         E is divided by this factor (>= 1) for a larger stable dt.
     tension_cutoff : bool
         Cap the largest principal stress at c cot(phi).
+    lost_contact : bool
+        Keep the volume gained at the apex or cap as a gap that compaction closes
+        stress-free (``mohr_coulomb.close_gap``); off by default.
     """
 
     density: float = 1500.0
@@ -94,6 +97,7 @@ class Material:
     wall_friction: float = 0.324
     stiffness_scaling: float = 1.0
     tension_cutoff: bool = True
+    lost_contact: bool = False
     bulk_viscosity_linear: float = 0.06
     bulk_viscosity_quadratic: float = 1.2
 
@@ -110,6 +114,7 @@ class Material:
             wall_friction=m["wall_friction"],
             stiffness_scaling=s["stiffness_scaling"],
             tension_cutoff=s["tension_cutoff"],
+            lost_contact=s["lost_contact"],
             bulk_viscosity_linear=s["bulk_viscosity_linear"],
             bulk_viscosity_quadratic=s["bulk_viscosity_quadratic"],
         )
@@ -424,7 +429,10 @@ class FlowSimulation:
         self.particles.colour[:] = self._colour(positions)
         self.grid = BackgroundGrid(self.vessel, s.cell, _threads(self.particles.count))
         self.bulk = self.material.bulk_viscosity(s.cell)
-        self.stress_arguments = self.material.return_arguments()
+        # the G2P kernels' material tuple: the return's constants, then 1.0 for lost contact
+        self.stress_arguments = self.material.return_arguments() + (
+            1.0 if self.material.lost_contact else 0.0,
+        )
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
@@ -778,6 +786,11 @@ def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
             {"units": "s-1", "long_name": "APIC affine velocity matrix"},
         ),
         "volume": (("particle",), p.vol, {"units": "m3", "long_name": "current volume"}),
+        "contact_gap": (
+            ("particle",),
+            p.gap,
+            {"units": "1", "long_name": "volume lost to contact per unit volume (closes first)"},
+        ),
         "volume0": (("particle",), p.vol0, {"units": "m3", "long_name": "initial volume"}),
         "mass": (("particle",), p.mass, {"units": "kg", "long_name": "mass"}),
         "colour": (("particle",), p.colour, {"units": "1", "long_name": "species A at phase 0"}),
