@@ -499,3 +499,36 @@ def test_closed_form_eigensolver_is_accurate_to_round_off(spectrum):
         )
         np.testing.assert_allclose(vectors.T @ vectors, np.eye(3), rtol=0, atol=1e-14)
         np.testing.assert_allclose(a @ vectors, vectors * values, rtol=0, atol=1e-14 * scale)
+
+
+@pytest.mark.parametrize("name", list(MATERIALS))
+def test_batched_return_matches_the_scalar_return(name):
+    # the SIMD block path of the 3-D G2P (eigh3_batch + return_batch) against the scalar
+    # general return, on every region's trials and random ones, and on trials beyond
+    # SAFE_RANGE, which return_batch must send to the rescaling scalar decomposition
+    mat = MATERIALS[name]
+    K, G, sin_phi, cos_phi, c, sin_psi, cutoff = mat
+    lam = K - 2.0 * G / 3.0
+    rng = np.random.default_rng(17)
+    built, _, _ = constructed_states(rng, 8, mat, False)
+    sig, _ = random_states(rng, 100, False)
+    trials = np.concatenate([built, sig, sig[:5] * 1e95])
+    n = len(trials)
+    work = tuple(w[0] for w in mc.batch_work(1, n))
+    rows = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    for r, (i, j) in enumerate(rows):
+        work[0][r, :] = trials[:, i, j]
+    mc.eigh3_batch(*work, n)
+    stress = np.zeros((n, 3, 3))
+    codes = np.full(n, -9, np.int8)
+    gap = np.zeros(n)
+    mc.return_batch(0, n, work[0], work[2], work[3], work[4], stress, codes, gap, False,
+                    lam, G, sin_phi, cos_phi, c, sin_psi, cutoff)  # fmt: skip
+    for p in range(n):
+        s = tuple(trials[p][i, j] for i, j in rows)
+        want, code = mc._return_general(s, lam, G, sin_phi, cos_phi, c, sin_psi, cutoff)
+        assert codes[p] == code
+        got = tuple(stress[p][i, j] for i, j in rows)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(trials[p]).max())
+    assert set(codes.tolist()) >= {0, 1, 2, 3, 4}
+    assert np.all(gap == 0.0)  # no lost contact asked for
