@@ -446,7 +446,6 @@ class FlowSimulation:
         self.steps = 0
         self.vmax = 0.0
         self.projected = 0
-        self.plastic_steps = np.zeros(5, np.int64)
         self.wall_seconds = 0.0
         self.particle_updates = 0
         self._output_grid()
