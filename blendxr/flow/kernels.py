@@ -72,9 +72,7 @@ import numpy as np
 from numba import njit, prange
 
 from .mohr_coulomb import (
-    close_gap,
     eigh3_batch,
-    open_gap,
     read_stress,
     return_batch,
     stress_step,
@@ -722,22 +720,12 @@ def grid_update_3d(
 
 @njit(**_JIT_SERIAL)
 def _stress_update(stress, codes, gap, p, l, dt, material):
-    """Mohr-Coulomb update of particle p's stress with the velocity gradient ``l``,
-    closing and opening its contact gap (``mohr_coulomb.close_gap``)."""
-    K = material[0]
-    g = gap[p]
-    if material[7] > 0.0:
-        l, g = close_gap(l, dt, g)
-    old = read_stress(stress, p)
-    s, code = stress_step(
-        old, l, dt, K, material[1], material[2], material[3], material[4], material[5],
-        material[6],
+    """Mohr-Coulomb update of particle p's stress (and contact gap) with the gradient ``l``."""
+    s, codes[p], gap[p] = stress_step(
+        read_stress(stress, p), l, dt, material[0], material[1], material[2], material[3],
+        material[4], material[5], material[6], gap[p], material[7] > 0.0,
     )  # fmt: skip
     write_stress(stress, p, s)
-    codes[p] = code
-    if material[7] > 0.0:
-        trial_trace = old[0] + old[1] + old[2] + 3.0 * K * dt * (l[0] + l[4] + l[8])
-        gap[p] = open_gap(g, code, trial_trace, s[0] + s[1] + s[2], K)
 
 
 @njit(**_JIT_SERIAL)
@@ -893,9 +881,7 @@ def _g2p_block_3d(
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        if contact:
-            l, gap[p] = close_gap(l, dt, gap[p])
-        s = trial_stress(read_stress(stress, p), l, dt, lam, G)
+        s, gap[p] = trial_stress(read_stress(stress, p), l, dt, lam, G, gap[p], contact)
         k = p - lo
         for r in range(6):
             trial[r, k] = s[r]

@@ -90,24 +90,25 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
 __all__ = [
     "APEX",
+    "BATCH_ROWS",
     "EDGE_COMPRESSION",
     "EDGE_EXTENSION",
     "ELASTIC",
     "INACTIVE",
     "PLANE",
-    "TENSION_CAP",
-    "elastic_constants",
-    "p_wave_speed",
-    "BATCH_ROWS",
     "SAFE_RANGE",
-    "close_gap",
+    "TENSION_CAP",
     "batch_work",
+    "close_gap",
     "eigh3_batch",
+    "elastic_constants",
     "open_gap",
+    "p_wave_speed",
     "principal_stresses",
     "read_stress",
     "return_batch",
@@ -719,8 +720,6 @@ def batch_work(threads, block):
     orthonormal pair spanning the plane orthogonal to it, and the eigenvalues with the
     2×2 rotation (far, larger, smaller, c, s).
     """
-    import numpy as np
-
     return tuple(np.zeros((threads, rows, block)) for rows in BATCH_ROWS)
 
 
@@ -776,19 +775,13 @@ def eigh3_batch(trial, alpha, e, uw, out, n):
 @njit(**_JIT)
 def read_stress(stress, p):
     """Particle p's symmetric stress from an (N, 3, 3) array as a 6-tuple."""
-    return (stress[p, 0, 0], stress[p, 1, 1], stress[p, 2, 2],
-            stress[p, 0, 1], stress[p, 0, 2], stress[p, 1, 2])  # fmt: skip
+    return _read(stress[p])
 
 
 @njit(**_JIT)
 def write_stress(stress, p, s):
     """Store the 6-tuple ``s`` as particle p's symmetric stress in an (N, 3, 3) array."""
-    stress[p, 0, 0] = s[0]
-    stress[p, 1, 1] = s[1]
-    stress[p, 2, 2] = s[2]
-    stress[p, 0, 1] = stress[p, 1, 0] = s[3]
-    stress[p, 0, 2] = stress[p, 2, 0] = s[4]
-    stress[p, 1, 2] = stress[p, 2, 1] = s[5]
+    _write(stress[p], s)
 
 
 @njit(**_JIT)
@@ -871,28 +864,42 @@ def open_gap(gap, code, trial_trace, new_trace, K):
 
 
 @njit(**_JIT)
-def trial_stress(s, l, dt, lam, G):
+def trial_stress(s, l, dt, lam, G, gap, contact):
     """Elastic trial: Jaumann (Hughes–Winget) rotation, then the hypoelastic increment.
 
     ``s`` the stress 6-tuple (xx, yy, zz, xy, xz, yz), ``l`` the velocity gradient
-    9-tuple row by row, ``lam`` and ``G`` Lamé's constants; returns the trial 6-tuple.
+    9-tuple row by row, ``lam`` and ``G`` Lamé's constants. With ``contact`` a
+    compression first closes the particle's ``gap`` (:func:`close_gap`). Returns the
+    trial 6-tuple and the gap left.
     """
-    return _elastic_increment(_rotate(_spin_rotation(l, dt), s), l, dt, lam, G)
+    if contact:
+        l, gap = close_gap(l, dt, gap)
+    return _elastic_increment(_rotate(_spin_rotation(l, dt), s), l, dt, lam, G), gap
 
 
 @njit(**_JIT)
-def stress_step(s, l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff):
+def stress_step(s, l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, gap,
+                contact):  # fmt: skip
     """One step of the stress update on scalars, for kernels that hold L in registers.
 
     As :func:`update_stress`, with the symmetric stress as the 6-tuple
     (σxx, σyy, σzz, σxy, σxz, σyz) and the velocity gradient as the 9-tuple
-    (L00, L01, L02, L10, ..., L22). Returns ``(new stress 6-tuple, code)``.
+    (L00, L01, L02, L10, ..., L22); with ``contact``, the particle's ``gap`` closes and
+    opens (:func:`close_gap`, :func:`open_gap`). Returns ``(new stress, code, gap)``.
     """
     lam = K - 2.0 * G / 3.0
-    s = trial_stress(s, l, dt, lam, G)
-    if s[4] == 0.0 and s[5] == 0.0:
-        return _return_plane_strain(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
-    return _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)
+    trial, gap = trial_stress(s, l, dt, lam, G, gap, contact)
+    if trial[4] == 0.0 and trial[5] == 0.0:
+        new, code = _return_plane_strain(
+            trial, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+        )
+    else:
+        new, code = _return_general(
+            trial, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+        )
+    if contact:
+        gap = open_gap(gap, code, trial[0] + trial[1] + trial[2], new[0] + new[1] + new[2], K)
+    return new, code, gap
 
 
 @njit(**_JIT)
@@ -928,8 +935,8 @@ def update_stress(sig, L, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension
         :data:`EDGE_EXTENSION` (3, σ2 = σ3), :data:`APEX` (4) or :data:`TENSION_CAP` (5).
     """
     l = (L[0, 0], L[0, 1], L[0, 2], L[1, 0], L[1, 1], L[1, 2], L[2, 0], L[2, 1], L[2, 2])
-    s, code = stress_step(
-        _read(sig), l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
+    s, code, _ = stress_step(
+        _read(sig), l, dt, K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, 0.0, False
     )
     _write(sig, s)
     return code
