@@ -13,6 +13,7 @@ import itertools
 import numpy as np
 
 from .kernels import GRID_MASS_TINY
+from .mohr_coulomb_reference import update_stresses
 
 __all__ = [
     "bulk_pressure",
@@ -106,8 +107,6 @@ def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material):
 
     Returns ``(x, v, C, vol, J, stress, codes)`` as new arrays.
     """
-    from .mohr_coulomb_reference import update_stresses
-
     n, d = x.shape
     v_new = np.zeros((n, d))
     b = np.zeros((n, d, d))
