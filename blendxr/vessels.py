@@ -113,6 +113,12 @@ def _box(params, x, y, z, is3d):
 
 
 @njit(cache=True)
+def _binding(v, d, tie):
+    # weight of a face plane in the normal: 1 if it binds (within the tie tolerance)
+    return 1.0 if v >= d - tie else 0.0
+
+
+@njit(cache=True)
 def _tote(params, x, y, z, is3d):
     # params: half width, half straight height, bottom y (body frame), cos and sin of the
     # hopper angle, half outlet, axis offset, cos and sin of the tilt.
@@ -125,24 +131,36 @@ def _tote(params, x, y, z, is3d):
     qz = -st * y + ct * z if is3d else 0.0
     ax, az = abs(qx), abs(qz)
     sx, sz = _sign(qx), _sign(qz)
-    # maximum over the face planes; the binding plane gives the normal
-    d, nx, ny, nz = qy - hs2, 0.0, 1.0, 0.0  # lid
-    v = yb - qy  # bottom (outlet)
-    if v > d:
-        d, nx, ny, nz = v, 0.0, -1.0, 0.0
-    v = ax - hw  # side walls x
-    if v > d:
-        d, nx, ny, nz = v, sx, 0.0, 0.0
-    v = (ax - ho) * ch - (qy - yb) * sh  # hopper walls x
-    if v > d:
-        d, nx, ny, nz = v, sx * ch, -sh, 0.0
-    if is3d:
-        v = az - hw  # side walls z
-        if v > d:
-            d, nx, ny, nz = v, 0.0, 0.0, sz
-        v = (az - ho) * ch - (qy - yb) * sh  # hopper walls z
-        if v > d:
-            d, nx, ny, nz = v, 0.0, -sh, sz * ch
+    # the maximum over the face planes: lid, outlet, side walls x, hopper walls x, side
+    # walls z, hopper walls z
+    lid = qy - hs2
+    outlet = yb - qy
+    side_x = ax - hw
+    hopper_x = (ax - ho) * ch - (qy - yb) * sh
+    side_z = az - hw if is3d else -math.inf
+    hopper_z = (az - ho) * ch - (qy - yb) * sh if is3d else -math.inf
+    d = max(lid, outlet, side_x, hopper_x, side_z, hopper_z)
+    # the normal: the binding plane's, or the mean of the planes that tie. A tie decided
+    # by round-off (a point on a diagonal, whose coordinates carry a last-bit error)
+    # would pick a face by that error and break the vessel's mirror symmetries.
+    tie = 1e-12 * (hw + hs2)
+    w = _binding(lid, d, tie)
+    nx, ny, nz = 0.0, w, 0.0
+    w = _binding(outlet, d, tie)
+    ny -= w
+    w = _binding(side_x, d, tie)
+    nx += w * sx
+    w = _binding(hopper_x, d, tie)
+    nx += w * sx * ch
+    ny -= w * sh
+    w = _binding(side_z, d, tie)
+    nz += w * sz
+    w = _binding(hopper_z, d, tie)
+    ny -= w * sh
+    nz += w * sz * ch
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if norm > 0.0:  # opposite faces cannot tie in a vessel of positive size
+        nx, ny, nz = nx / norm, ny / norm, nz / norm
     # body-frame normal -> vessel frame
     return d, nx, ct * ny - st * nz, st * ny + ct * nz
 
@@ -191,7 +209,9 @@ def sdf_normal(kind, params, x, y, z, out):
 
     The normal is analytic: the radial or axial direction for drums, the binding face or
     the direction from the nearest edge or corner for boxes, the binding face plane for
-    totes. Where the gradient is undefined (a drum's axis, a tie between faces) one of
+    totes (the normalised mean of the planes that tie, within 1e-12 of the vessel's
+    size: a tie that round-off decides would break the vessel's mirror symmetry). Where
+    the gradient is undefined otherwise (a drum's axis, a box's inside diagonal) one of
     the one-sided gradients is written.
 
     Parameters

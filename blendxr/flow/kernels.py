@@ -86,6 +86,7 @@ __all__ = [
     "chunk_starts",
     "deposit_2d",
     "deposit_3d",
+    "fold_mirror_3d",
     "g2p_2d",
     "g2p_3d",
     "grid_update_2d",
@@ -534,6 +535,52 @@ def reduce_grids_3d(grid_m, grid_p, out_m, out_p):
                 out_p[i, j, k, 0] = p0
                 out_p[i, j, k, 1] = p1
                 out_p[i, j, k, 2] = p2
+
+
+@njit(**_JIT)
+def fold_mirror_3d(out_m, out_p, k0):
+    """Make the node fields those of the bed and its mirror image across a plane z = z0.
+
+    For a flow that is mirror-symmetric about the node plane ``k = k0`` the driver keeps
+    only the particles on its upper side (``z >= z0``). Their mirror images would put
+    into node ``k0 + g`` what the kept particles put into node ``k0 - g``, with the z
+    momentum reversed; this adds that in (the plane's own nodes get their mass doubled
+    and no z momentum), then writes the mirror image of the upper nodes onto the ghost
+    nodes below the plane, so that the grid update and the gather see the whole
+    symmetric field. Exact: the result equals a P2G of the bed and its mirror image.
+
+    Parameters
+    ----------
+    out_m : ndarray of float64, shape (nx, ny, nz)
+        Node masses [kg] from :func:`reduce_grids_3d`, folded in place.
+    out_p : ndarray of float64, shape (nx, ny, nz, 3)
+        Node momenta [kg m/s], folded in place.
+    k0 : int
+        Index of the mirror plane's nodes, ``1 <= k0``, ``2 k0 < nz`` (the ghost nodes
+        ``0 .. k0 - 1`` must have their images on the grid).
+    """
+    nx, ny, nz = out_m.shape
+    for i in prange(nx):
+        for j in range(ny):
+            out_m[i, j, k0] *= 2.0
+            out_p[i, j, k0, 0] *= 2.0
+            out_p[i, j, k0, 1] *= 2.0
+            out_p[i, j, k0, 2] = 0.0
+            for g in range(1, k0 + 1):
+                up = k0 + g
+                down = k0 - g
+                mass = out_m[i, j, up] + out_m[i, j, down]
+                p0 = out_p[i, j, up, 0] + out_p[i, j, down, 0]
+                p1 = out_p[i, j, up, 1] + out_p[i, j, down, 1]
+                p2 = out_p[i, j, up, 2] - out_p[i, j, down, 2]
+                out_m[i, j, up] = mass
+                out_p[i, j, up, 0] = p0
+                out_p[i, j, up, 1] = p1
+                out_p[i, j, up, 2] = p2
+                out_m[i, j, down] = mass
+                out_p[i, j, down, 0] = p0
+                out_p[i, j, down, 1] = p1
+                out_p[i, j, down, 2] = -p2
 
 
 # ---------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -43,7 +44,7 @@ from ..schema import flow_dataset
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
 from . import mohr_coulomb as mc
-from .walls import project_into_vessel
+from .walls import project_into_vessel, reflect_across_mirror
 
 __all__ = ["FlowBlowUpError", "FlowSimulation", "Material", "solve_flow"]
 
@@ -55,6 +56,7 @@ GRID_PADDING = 3  # empty nodes around the vessel's bounding box (B-spline suppo
 DEFAULT_PHASES = 36
 WALL_BAND = 0.5  # nodes closer to the wall than this many cells get the wall law (docs/flow.md)
 WALL_SKIN = 1e-3  # projected particles land this many cells inside the wall
+SYMMETRY_MODES = ("auto", "mirror-z", "none")
 
 
 class FlowBlowUpError(RuntimeError):
@@ -161,8 +163,10 @@ class Particles:
 
     FIELDS = ("x", "v", "C", "stress", "gap", "mass", "vol0", "vol", "J", "colour")
 
-    def __init__(self, positions: np.ndarray, volume: float, density: float):
+    def __init__(self, positions: np.ndarray, volume: float, density: float, mirror=False):
         n, d = positions.shape
+        # a mirror-symmetric run keeps the colour of each particle's image too
+        self.fields = self.FIELDS + (("image_colour",) if mirror else ())
         self.ndim = d
         self.x = np.ascontiguousarray(positions, dtype=float)
         self.v = np.zeros((n, d))
@@ -174,6 +178,7 @@ class Particles:
         self.J = np.ones(n)
         self.mass = self.vol0 * density
         self.colour = np.zeros(n)
+        self.image_colour = np.zeros(n) if mirror else None
         self.codes = np.zeros(n, np.int8)
 
     @property
@@ -181,14 +186,14 @@ class Particles:
         return self.x.shape[0]
 
     def permute(self, order: np.ndarray) -> None:
-        for name in self.FIELDS:
+        for name in self.fields:
             setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in self.FIELDS}
+        return {name: getattr(self, name) for name in self.fields}
 
     def load(self, arrays: dict) -> None:
-        for name in self.FIELDS:
+        for name in self.fields:
             setattr(self, name, np.ascontiguousarray(arrays[name]))
         self.codes = np.zeros(self.x.shape[0], np.int8)
 
@@ -197,17 +202,25 @@ class BackgroundGrid:
     """Nodes at ``origin + i h`` covering the vessel, with wall distances precomputed.
 
     The vessel does not move in its own frame, so the signed distance and the outward
-    normal at every node are computed once.
+    normal at every node are computed once. With ``mirror`` the grid covers z >= 0 plus
+    ``GRID_PADDING`` ghost node planes below (``mirror_index`` is the plane z = 0).
     """
 
-    def __init__(self, vessel, h: float, threads: int):
+    def __init__(self, vessel, h: float, threads: int, mirror: bool = False):
         lower, upper = (np.asarray(b, float) for b in vessel.bounds)
+        if mirror:
+            lower[2] = 0.0
         self.h = float(h)
         self.ndim = vessel.ndim
         self.origin = (np.floor(lower / h) - GRID_PADDING) * h
         top = (np.ceil(upper / h) + GRID_PADDING) * h
         self.shape = tuple(int(round(n)) + 1 for n in (top - self.origin) / h)
-        axes = [self.origin[a] + h * np.arange(n) for a, n in enumerate(self.shape)]
+        self.mirror_index = GRID_PADDING if mirror else -1
+        # nodes at h times whole numbers: mirror-image nodes get bitwise mirror-image
+        # coordinates (origin + i h would not), so their wall distances are equal too and
+        # no wall-band test or face tie is decided differently on the two sides
+        first = np.round(self.origin / h).astype(np.int64)
+        axes = [h * np.arange(first[a], first[a] + n) for a, n in enumerate(self.shape)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
         self.node_sdf = np.ascontiguousarray(vessel.sdf(nodes))
         self.node_normal = np.ascontiguousarray(vessel.normal(nodes))
@@ -227,6 +240,9 @@ class BackgroundGrid:
             a.nbytes
             for a in (self.thread_m, self.thread_p, self.mass, self.momentum, self.velocity)
         )
+
+
+_MIRROR = np.array([1.0, 1.0, -1.0])  # z -> -z
 
 
 def _rotation(theta: float, ndim: int) -> np.ndarray:
@@ -255,6 +271,7 @@ class SolverSettings:
     average_window: float | None
     checkpoint_every: float
     seed: int
+    symmetry: str = "auto"
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -276,6 +293,12 @@ class SolverSettings:
         duration = op.get("duration")
         if rpm == 0 and duration is None:
             faults.append("operation.duration: needed when operation.rpm = 0")
+        symmetry = s.get("symmetry", "auto")
+        if symmetry not in SYMMETRY_MODES:
+            faults.append(
+                f"solver.symmetry = {symmetry!r} is out of range; allowed: "
+                + ", ".join(repr(m) for m in SYMMETRY_MODES)
+            )
         if faults:
             raise SceneError(faults)
         phases = int(fl.get("phases", DEFAULT_PHASES))
@@ -296,6 +319,7 @@ class SolverSettings:
             average_window=s.get("average_window"),
             checkpoint_every=float(s["checkpoint_every"]),
             seed=int(s["seed"]),
+            symmetry=symmetry,
         )
 
 
@@ -307,13 +331,17 @@ class PhaseAverager:
 
     Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
     of a bin is its mean particle volume per cell over its samples, the velocity its
-    volume-weighted mean. With ``halves``, even- and odd-numbered particles are kept
-    apart (their sum is the same average): two estimates of the same field from
-    disjoint halves of the particles, whose difference measures the sampling noise of
-    the average (:meth:`half_fields`).
+    volume-weighted mean. With ``mirror`` the particles stand for themselves and their
+    mirror images across z = 0 (a mirror-symmetric run): the fields add the reflection.
+    With ``halves``, even- and odd-numbered particles are kept apart (their sum is the
+    same average): two estimates of the same field from disjoint halves of the
+    particles, whose difference measures the sampling noise of the average
+    (:meth:`half_fields`).
     """
 
-    def __init__(self, lower: np.ndarray, shape: tuple, h: float, phases: int, halves=False):
+    def __init__(
+        self, lower: np.ndarray, shape: tuple, h: float, phases: int, halves=False, mirror=False
+    ):
         self.origin = np.asarray(lower, float)
         self.shape = tuple(shape)
         self.h = float(h)
@@ -323,6 +351,11 @@ class PhaseAverager:
         self.vol = np.zeros((parts, phases, *shape))
         self.mom = np.zeros((parts, phases, *shape, self.ndim))
         self.samples = np.zeros(phases, np.int64)
+        self.mirror = bool(mirror)
+        if self.mirror and not math.isclose(
+            -self.origin[2], self.origin[2] + self.h * shape[2], abs_tol=1e-9 * self.h
+        ):
+            raise ValueError("mirror: the output grid must be symmetric about z = 0")
 
     def bin_of(self, phase: float) -> int:
         return int(math.floor(phase * self.phases + 0.5)) % self.phases
@@ -345,6 +378,12 @@ class PhaseAverager:
         return [self._fields(2.0 * v, 2.0 * m) for v, m in zip(self.vol, self.mom, strict=True)]
 
     def _fields(self, vol, mom):
+        if self.mirror:
+            # the particles' mirror images, deposited by reflecting the cells about z = 0
+            vol = vol + vol[..., ::-1]
+            image = mom[..., ::-1, :].copy()
+            image[..., 2] *= -1.0
+            mom = mom + image
         if np.any(self.samples == 0):
             empty = np.flatnonzero(self.samples == 0).tolist()
             raise RuntimeError(f"phase bins {empty} received no samples; use fewer phases")
@@ -424,22 +463,30 @@ class FlowSimulation:
         self.settings = s = SolverSettings.from_scene(self.scene, self.vessel)
         self.material = Material.from_scene(self.scene)
         self.ndim = self.vessel.ndim
-        positions, volume = self._seed()
-        self.particles = Particles(positions, volume, self.material.density)
-        self.particles.colour[:] = self._colour(positions)
-        self.grid = BackgroundGrid(self.vessel, s.cell, _threads(self.particles.count))
-        self.bulk = self.material.bulk_viscosity(s.cell)
-        # the G2P kernels' material tuple: the return's constants, then 1.0 for lost contact
-        self.stress_arguments = self.material.return_arguments() + (
-            1.0 if self.material.lost_contact else 0.0,
-        )
-        self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
         if gravity_direction is not None:
             direction = np.asarray(gravity_direction, float)[: self.ndim]
             direction = direction / np.linalg.norm(direction)
         self.gravity_direction = direction
+        positions, volume = self._seed()
+        self.mirror = self._mirror_symmetric(positions)
+        if self.mirror:
+            positions = np.ascontiguousarray(positions[positions[:, 2] > 0.0])
+        self.particles = Particles(positions, volume, self.material.density, self.mirror)
+        self.particles.colour[:] = self._colour(positions)
+        if self.mirror:
+            self.particles.image_colour[:] = self._colour(positions * _MIRROR)
+        self.grid = BackgroundGrid(
+            self.vessel, s.cell, _threads(self.particles.count), mirror=self.mirror
+        )
+        self.bulk = self.material.bulk_viscosity(s.cell)
+        # the G2P kernels' material tuple: the return's constants, then 1.0 for lost contact
+        self.stress_arguments = self.material.return_arguments() + (
+            1.0 if self.material.lost_contact else 0.0,
+        )
+        self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
+        self.reflected = 0
         self.omega = 2.0 * math.pi * s.rpm / 60.0
         self.period = 60.0 / s.rpm if s.rpm > 0 else math.inf
         self.t = 0.0
@@ -450,10 +497,9 @@ class FlowSimulation:
         self.particle_updates = 0
         self._output_grid()
         self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
-        self.last = PhaseAverager(
-            self.out_origin, self.out_shape, s.output_cell, s.phases, halves=True
-        )
-        self.previous = PhaseAverager(self.out_origin, self.out_shape, s.output_cell, s.phases)
+        grid = (self.out_origin, self.out_shape, s.output_cell, s.phases)
+        self.last = PhaseAverager(*grid, halves=True, mirror=self.mirror)
+        self.previous = PhaseAverager(*grid, mirror=self.mirror)
         # fixed at the start (material at rest), so that a resumed run samples the same steps
         self.sample_every = self.samples_every()
         self._check_range()
@@ -466,6 +512,49 @@ class FlowSimulation:
             return fill_from_scene(self.vessel, self.scene, self.settings.cell)
         except ValueError as err:
             raise SceneError([f"fill: {err}"]) from None
+
+    def _mirror_symmetric(self, positions: np.ndarray) -> bool:
+        """Whether to solve one half of a bed that is mirror-symmetric about z = 0.
+
+        The vessel frame's rotation axis is z, so gravity, centrifugal and Coriolis
+        accelerations have no z part: when the vessel, the seeded bed and gravity are
+        all symmetric under z -> -z, so is the exact flow, and the solver keeps the
+        particles at z > 0 only (half the work and memory), with the plane z = 0 as an
+        exact mirror (:func:`blendxr.flow.kernels.fold_mirror_3d`). ``solver.symmetry``
+        = "none" solves the whole bed; "mirror-z" insists on the half (an error when the
+        scene is not symmetric); "auto" takes the half when it can.
+        """
+        mode = self.settings.symmetry
+        if mode == "none":
+            return False
+        reason = self._asymmetry(positions)
+        if reason and mode == "mirror-z":
+            raise SceneError([f"solver.symmetry = 'mirror-z': {reason}; allowed: 'auto' or 'none'"])
+        return reason is None
+
+    def _asymmetry(self, positions: np.ndarray) -> str | None:
+        """Why the scene is not mirror-symmetric about z = 0 (None when it is)."""
+        if self.ndim != 3:
+            return "the scene is 2-D"
+        if self.gravity_direction[2] != 0.0:
+            return "gravity has a z component"
+        lower, upper = (np.asarray(b, float) for b in self.vessel.bounds)
+        h = self.settings.cell
+        axes = [np.arange(lower[a] - h, upper[a] + 1.5 * h, h) for a in range(3)]
+        axes[2] = np.concatenate([-axes[2][::-1], axes[2]])
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+        tol = 1e-9 * float(np.max(upper - lower))
+        if not np.allclose(self.vessel.sdf(nodes), self.vessel.sdf(nodes * _MIRROR), atol=tol):
+            return "the vessel is not symmetric about z = 0 (tilted or off-centre)"
+        above = positions[positions[:, 2] > 0.0]
+        below = positions[positions[:, 2] < 0.0] * _MIRROR
+        if len(above) + len(below) != len(positions) or len(above) != len(below):
+            return "the seeded bed is not symmetric about z = 0"
+        order_a = np.lexsort(above.T[::-1])
+        order_b = np.lexsort(below.T[::-1])
+        if not np.allclose(above[order_a], below[order_b], rtol=0.0, atol=tol):
+            return "the seeded bed is not symmetric about z = 0"
+        return None
 
     def _colour(self, x: np.ndarray) -> np.ndarray:
         """Colour 1 for species A by the scene's loading at phase 0 (DESIGN §2)."""
@@ -534,6 +623,8 @@ class FlowSimulation:
         (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
             g.thread_m, g.thread_p, g.mass, g.momentum
         )
+        if self.mirror:
+            mpm.fold_mirror_3d(g.mass, g.momentum, g.mirror_index)
         (mpm.grid_update_3d if three else mpm.grid_update_2d)(
             g.mass, g.momentum, g.velocity, g.origin, g.h, dt, gravity, omega, damping,
             g.node_sdf, g.node_normal, self.material.wall_friction, WALL_BAND * g.h,
@@ -544,6 +635,8 @@ class FlowSimulation:
             p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.origin, inv_h,
             dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
+        if self.mirror:
+            self.reflected += reflect_across_mirror(p.x, p.v, p.C, p.stress, 0.0, self.starts)
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
             g.scratch, g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
@@ -646,6 +739,7 @@ class FlowSimulation:
             "steps": self.steps,
             "vmax": self.vmax,
             "projected": self.projected,
+            "reflected": self.reflected,
             "particle_updates": self.particle_updates,
             "wall_seconds": self.wall_seconds,
             "fingerprint": self.fingerprint(),
@@ -669,6 +763,7 @@ class FlowSimulation:
         self.steps = int(meta["steps"])
         self.vmax = float(meta["vmax"])
         self.projected = int(meta["projected"])
+        self.reflected = int(meta.get("reflected", 0))
         self.particle_updates = int(meta["particle_updates"])
         self.wall_seconds = float(meta["wall_seconds"])
 
@@ -764,8 +859,20 @@ def _update_bar(bar, sim: FlowSimulation, elapsed: float) -> None:
 # ----------------------------------------------------------------------------- public
 
 
-def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
+def _whole_bed(sim: FlowSimulation) -> dict[str, np.ndarray]:
+    """The particle arrays of the whole bed: a mirror-symmetric run adds the images."""
     p = sim.particles
+    arrays = {name: getattr(p, name) for name in Particles.FIELDS}
+    if not sim.mirror:
+        return arrays
+    flip = np.array([[1.0, 1.0, -1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+    images = dict(arrays, x=p.x * _MIRROR, v=p.v * _MIRROR, C=p.C * flip,
+                  stress=p.stress * flip, colour=p.image_colour)  # fmt: skip
+    return {name: np.concatenate([arrays[name], images[name]]) for name in arrays}
+
+
+def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
+    p = SimpleNamespace(**_whole_bed(sim))
     axes = "xyz"[: sim.ndim]
     data = {
         "position": (("particle", "component"), p.x, {"units": "m", "long_name": "position"}),
@@ -808,6 +915,12 @@ def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
             "frame": "vessel",
         },
     )  # fmt: skip
+    if sim.mirror:
+        n = sim.particles.count
+        ds.attrs["mirror_plane"] = (
+            f"z = 0: particles {n} to {2 * n - 1} are the mirror images of particles 0 to "
+            f"{n - 1}, which the solver computed (solver.symmetry)"
+        )
     return ds
 
 
@@ -830,7 +943,9 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
     attrs = {
         "solver": "MLS-MPM/APIC, quadratic B-splines, Mohr-Coulomb (blendxr.flow.solver)",
         "solver_cell_m": s.cell,
-        "particles": sim.particles.count,
+        "particles": sim.particles.count * (2 if sim.mirror else 1),
+        "particles_solved": sim.particles.count,
+        "mirror_plane": "z = 0 (half the bed solved)" if sim.mirror else "none",
         "particles_per_cell": s.per_cell,
         "steps": sim.steps,
         "simulated_time_s": sim.t,
@@ -841,11 +956,12 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
         "p_wave_speed_m_s": sim.material.p_wave_speed,
         "courant": s.courant,
         "dt_last_s": sim.stable_dt(),
-        "material_volume_m3": float(sim.particles.vol0.sum()),
+        "material_volume_m3": float(sim.particles.vol0.sum()) * (2 if sim.mirror else 1),
         "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
         "current_volume_over_seeded": float(sim.particles.vol.sum() / sim.particles.vol0.sum()),
         "fill_clipped_max": float(raw.max()),
         "projected_particles": sim.projected,
+        "reflected_particles": sim.reflected,
         "revolutions_turned": sim.revolution(),
         "samples_per_phase": sim.last.samples.tolist(),
     }

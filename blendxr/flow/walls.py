@@ -17,7 +17,7 @@ from numba import prange
 
 from ..vessels import sdf_normal
 
-__all__ = ["MAX_PROJECTIONS", "project_into_vessel"]
+__all__ = ["MAX_PROJECTIONS", "project_into_vessel", "reflect_across_mirror"]
 
 MAX_PROJECTIONS = 8  # projections per particle and step (one suffices off edges)
 
@@ -100,3 +100,50 @@ def project_into_vessel(kind, params, x, v, skin, starts, scratch, node_sdf, ori
     for t in range(tasks):
         total += int(scratch[t, 3])
     return total
+
+
+@numba.njit(parallel=True, cache=True)
+def reflect_across_mirror(x, v, C, stress, z0, starts):
+    """Replace particles below the mirror plane z = z0 by their mirror images (in place).
+
+    With a mirror-symmetric flow solved on one side of the plane (see
+    :func:`blendxr.flow.kernels.fold_mirror_3d`) a particle that crossed the plane stands
+    for its image, which crossed the other way: z - z0 and the z velocity change sign,
+    and so do the xz and yz entries of the affine matrix and the stress (``R A R`` with
+    ``R = diag(1, 1, -1)``).
+
+    Parameters
+    ----------
+    x, v : ndarray of float64, shape (N, 3)
+        Positions (m) and velocities (m/s).
+    C : ndarray of float64, shape (N, 3, 3)
+        Affine matrices (1/s).
+    stress : ndarray of float64, shape (N, 3, 3)
+        Cauchy stresses (Pa).
+    z0 : float
+        Height of the plane on the z axis (m).
+    starts : ndarray of int64, shape (T + 1,)
+        Contiguous particle chunks, one per parallel task.
+
+    Returns
+    -------
+    int
+        Number of particles reflected.
+    """
+    tasks = starts.shape[0] - 1
+    counts = np.zeros(tasks, np.int64)
+    for t in prange(tasks):
+        count = 0
+        for p in range(starts[t], starts[t + 1]):
+            if x[p, 2] >= z0:
+                continue
+            count += 1
+            x[p, 2] = 2.0 * z0 - x[p, 2]
+            v[p, 2] = -v[p, 2]
+            for a in range(2):
+                C[p, a, 2] = -C[p, a, 2]
+                C[p, 2, a] = -C[p, 2, a]
+                stress[p, a, 2] = -stress[p, a, 2]
+                stress[p, 2, a] = -stress[p, 2, a]
+        counts[t] = count
+    return int(counts.sum())
