@@ -119,6 +119,26 @@ def _binding(v, d, tie):
 
 
 @njit(cache=True)
+def _face_mean(lid, outlet, side_x, hopper_x, side_z, hopper_z, d, tie, sx, sz, ch, sh):
+    # the sum of the normals of the tote's face planes that bind (sx, sz: the sides)
+    w = _binding(lid, d, tie)
+    nx, ny, nz = 0.0, w, 0.0
+    w = _binding(outlet, d, tie)
+    ny -= w
+    w = _binding(side_x, d, tie)
+    nx += w * sx
+    w = _binding(hopper_x, d, tie)
+    nx += w * sx * ch
+    ny -= w * sh
+    w = _binding(side_z, d, tie)
+    nz += w * sz
+    w = _binding(hopper_z, d, tie)
+    ny -= w * sh
+    nz += w * sz * ch
+    return nx, ny, nz
+
+
+@njit(cache=True)
 def _tote(params, x, y, z, is3d):
     # params: half width, half straight height, bottom y (body frame), cos and sin of the
     # hopper angle, half outlet, axis offset, cos and sin of the tilt.
@@ -144,23 +164,17 @@ def _tote(params, x, y, z, is3d):
     # by round-off (a point on a diagonal, whose coordinates carry a last-bit error)
     # would pick a face by that error and break the vessel's mirror symmetries.
     tie = 1e-12 * (hw + hs2)
-    w = _binding(lid, d, tie)
-    nx, ny, nz = 0.0, w, 0.0
-    w = _binding(outlet, d, tie)
-    ny -= w
-    w = _binding(side_x, d, tie)
-    nx += w * sx
-    w = _binding(hopper_x, d, tie)
-    nx += w * sx * ch
-    ny -= w * sh
-    w = _binding(side_z, d, tie)
-    nz += w * sz
-    w = _binding(hopper_z, d, tie)
-    ny -= w * sh
-    nz += w * sz * ch
+    # on a plane x = 0 or z = 0 the two opposite walls tie: their mean has no x (z) part
+    mx = 0.0 if qx == 0.0 else sx
+    mz = 0.0 if qz == 0.0 else sz
+    nx, ny, nz = _face_mean(lid, outlet, side_x, hopper_x, side_z, hopper_z, d, tie, mx, mz, ch, sh)
     norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if norm > 0.0:  # opposite faces cannot tie in a vessel of positive size
-        nx, ny, nz = nx / norm, ny / norm, nz / norm
+    if norm == 0.0:  # on the axis of the straight section: any of the walls serves
+        nx, ny, nz = _face_mean(
+            lid, outlet, side_x, hopper_x, side_z, hopper_z, d, tie, sx, sz, ch, sh
+        )
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx / norm, ny / norm, nz / norm
     # body-frame normal -> vessel frame
     return d, nx, ct * ny - st * nz, st * ny + ct * nz
 

@@ -512,3 +512,26 @@ def test_fill_from_scene_reads_fill_and_solver():
     assert vp == want_vp
     with pytest.raises(ValueError, match="fill"):
         vs.fill_from_scene(vessel, bx.load_scene("drum-2d"), 0.01)
+
+
+def test_tote_normals_keep_the_mirror_symmetry_where_faces_tie():
+    # points on the diagonals of the corner edges (x = +-z), as a grid makes them: the
+    # coordinates carry last-bit errors that must not pick different faces on the two
+    # sides of the plane z = 0
+    tote = vs.Tote(ndim=3)
+    h = 0.02
+    k = np.arange(-9, 10)
+    axes = [-0.18 + h * (k + 9), -0.34 + h * np.arange(30), -0.18 + h * (k + 9)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    image = nodes * [1.0, 1.0, -1.0]
+    normal, normal_image = tote.normal(nodes), tote.normal(image) * [1.0, 1.0, -1.0]
+    np.testing.assert_allclose(tote.sdf(nodes), tote.sdf(image), rtol=0, atol=1e-15)
+    # except on the axis of the straight section, where all four side walls tie and any
+    # one serves (the normal is undefined there, far from every wall)
+    axis = (nodes[..., 0] == 0.0) & (nodes[..., 2] == 0.0) & (np.abs(nodes[..., 1]) < 0.1)
+    np.testing.assert_allclose(normal[~axis], normal_image[~axis], rtol=0, atol=1e-12)
+    # on a tie the normal is the mean of the tied faces': x = z = 0.16 outside the
+    # vertical corner edge, 0.05 from both side walls
+    np.testing.assert_allclose(
+        tote.normal(np.array([0.16, 0.0, 0.16])), [0.5**0.5, 0.0, 0.5**0.5], atol=1e-15
+    )
