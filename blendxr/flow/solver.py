@@ -469,6 +469,7 @@ class FlowSimulation:
             direction = np.asarray(gravity_direction, float)[: self.ndim]
             direction = direction / np.linalg.norm(direction)
         self.gravity_direction = direction
+        self._output_grid()
         positions, volume = self._seed()
         self.mirror = self._mirror_symmetric(positions)
         if self.mirror:
@@ -495,7 +496,6 @@ class FlowSimulation:
         self.projected = 0
         self.wall_seconds = 0.0
         self.particle_updates = 0
-        self._output_grid()
         self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
         grid = (self.out_origin, self.out_shape, s.output_cell, s.phases)
         self.last = PhaseAverager(*grid, halves=True, mirror=self.mirror)
@@ -546,6 +546,9 @@ class FlowSimulation:
         tol = 1e-9 * float(np.max(upper - lower))
         if not np.allclose(self.vessel.sdf(nodes), self.vessel.sdf(nodes * _MIRROR), atol=tol):
             return "the vessel is not symmetric about z = 0 (tilted or off-centre)"
+        top = self.out_origin[2] + self.settings.output_cell * self.out_shape[2]
+        if not math.isclose(-self.out_origin[2], top, abs_tol=1e-9 * self.settings.output_cell):
+            return "the output grid is not symmetric about z = 0"
         above = positions[positions[:, 2] > 0.0]
         below = positions[positions[:, 2] < 0.0] * _MIRROR
         if len(above) + len(below) != len(positions) or len(above) != len(below):
