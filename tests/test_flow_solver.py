@@ -177,6 +177,8 @@ def test_instability_stops_with_step_time_and_place(monkeypatch):
         ("fill", "fraction", 1.5, "fill.fraction"),
         ("operation", "rpm", -1.0, "operation.rpm"),
         ("flow", "cell", 1.0, "flow.cell"),
+        ("material", "friction_angle_limit_deg", 20.0, "material.friction_angle_limit_deg"),
+        ("material", "friction_angle_limit_deg", 95.0, "material.friction_angle_limit_deg"),
     ],
 )
 def test_out_of_range_scene_values_name_the_key(section, key, value, fragment):
@@ -191,3 +193,17 @@ def test_lost_contact_is_off_unless_the_scene_asks_for_it():
     scene = drum_scene(0.4)
     scene["solver"]["lost_contact"] = True
     assert FlowSimulation(scene).stress_arguments[7] == 1.0
+
+
+def test_mu_of_i_is_off_unless_the_scene_asks_for_it():
+    assert FlowSimulation(drum_scene(0.4)).stress_arguments[8] == 0.0
+    scene = drum_scene(0.4)
+    scene.setdefault("material", {}).update(
+        friction_angle_limit_deg=45.0, particle_diameter=0.002, packing_fraction=0.6
+    )
+    rise, i0, scale = FlowSimulation(scene).stress_arguments[8:]
+    phi = math.radians(scene["material"].get("friction_angle_deg", 27.1))
+    assert rise == pytest.approx(1.0 - math.tan(phi), rel=1e-14)
+    assert i0 == 0.279
+    density = scene["material"].get("density", 1500.0)
+    assert scale == pytest.approx(0.002 * math.sqrt(density / 0.6), rel=1e-14)

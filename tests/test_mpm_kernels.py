@@ -80,8 +80,12 @@ MATERIAL = (
     *(float(k) for k in mohr_coulomb.elastic_constants(3.65e4, 0.065)[:2]),
     math.sin(_PHI), math.cos(_PHI), 87.0, math.sin(_PSI), 87.0 / math.tan(_PHI),
 )  # fmt: skip
-#: The G2P kernels' material: MATERIAL and the lost-contact switch (on)
-G2P_MATERIAL = (*MATERIAL, 1.0)
+#: The G2P kernels' material: MATERIAL, the lost-contact switch (on), no mu(I)
+G2P_MATERIAL = (*MATERIAL, 1.0, 0.0, 1.0, 0.0)
+#: mu(I) with mu_2 - mu_s = 0.26, I0 = 0.279 (Jop et al. 2006) and d sqrt(rho_s) = 1 (a
+#: 20 mm grain of 2500 kg/m3): at the test's rates and pressures I is of order I0, so
+#: the friction angle moves far from phi
+RATE = (0.26, 0.279, 1.0)
 
 
 def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None):
@@ -312,7 +316,8 @@ def test_block_on_incline_accelerates_at_g_sin_minus_mu_cos():
 
 
 @DIMS
-def test_g2p_matches_twin_with_the_stress_update(d):
+@pytest.mark.parametrize("rate", [None, RATE], ids=["mohr-coulomb", "mu-of-I"])
+def test_g2p_matches_twin_with_the_stress_update(d, rate):
     rng = np.random.default_rng(7)
     x, v, C, _, vol, _ = _particles(d, seed=7)
     vel = rng.normal(0.0, 0.5, (*SHAPES[d], d))
@@ -326,12 +331,27 @@ def test_g2p_matches_twin_with_the_stress_update(d):
     stress += shear + shear.transpose(0, 2, 1)
     if d == 2:
         stress[:, 2, :2] = stress[:, :2, 2] = 0.0  # plane strain: no out-of-plane shear
-    got = _g2p(d, x, v, C, vol, J, vel, dt, stress)
-    expected = reference.g2p(x, v, C, vol, J, vel, ORIGIN[d], INV_H, dt, stress, MATERIAL)
+    material = G2P_MATERIAL[:8] + (RATE if rate else (0.0, 1.0, 0.0))
+    got = _g2p(d, x, v, C, vol, J, vel, dt, stress, material=material)
+    expected = reference.g2p(
+        x, v, C, vol, J, vel, ORIGIN[d], INV_H, dt, stress, MATERIAL, rate=rate
+    )
     for a, b in zip(got[:6], expected[:6], strict=True):
         _close(a, b)
     np.testing.assert_array_equal(got[6], expected[6])
     assert len(set(got[6].tolist()) & {0, 1}) == 2  # elastic and plastic particles both
+    if rate:
+        # the plane returns land on the surface of the rate's own angle, beyond the
+        # quasi-static one (mu(I) > tan phi)
+        L = np.zeros((len(x), 3, 3))
+        L[:, :d, :d] = got[2]
+        sin_i, cos_i = reference.rate_friction(L, stress, *MATERIAL[2:4], *rate)
+        plane = np.flatnonzero(got[6] == mohr_coulomb.PLANE)
+        assert len(plane) > 3 and np.all(sin_i[plane] > MATERIAL[2] + 0.02)
+        for p in plane:
+            f = mohr_coulomb.yield_value(got[5][p], sin_i[p], cos_i[p], MATERIAL[4])
+            assert abs(f) < 1e-9 * np.abs(got[5][p]).max()
+            assert mohr_coulomb.yield_value(got[5][p], *MATERIAL[2:5]) > 0.0
 
 
 # ---------------------------------------------------------------------------------------

@@ -73,6 +73,7 @@ from numba import njit, prange
 
 from .mohr_coulomb import (
     eigh3_batch,
+    rate_friction,
     read_stress,
     return_batch,
     stress_step,
@@ -768,9 +769,13 @@ def grid_update_3d(
 @njit(**_JIT_SERIAL)
 def _stress_update(stress, codes, gap, p, l, dt, material):
     """Mohr-Coulomb update of particle p's stress (and contact gap) with the gradient ``l``."""
+    old = read_stress(stress, p)
+    sin_phi, cos_phi = rate_friction(
+        l, old, material[2], material[3], material[8], material[9], material[10]
+    )
     s, codes[p], gap[p] = stress_step(
-        read_stress(stress, p), l, dt, material[0], material[1], material[2], material[3],
-        material[4], material[5], material[6], gap[p], material[7] > 0.0,
+        old, l, dt, material[0], material[1], sin_phi, cos_phi, material[4], material[5],
+        material[6], gap[p], material[7] > 0.0,
     )  # fmt: skip
     write_stress(stress, p, s)
 
@@ -830,7 +835,24 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, gap, stress, codes, vel, origin, inv_
 
 @njit(**_JIT_SERIAL)
 def _g2p_block_3d(
-    lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, contact, trial
+    lo,
+    hi,
+    x,
+    v,
+    C,
+    vol,
+    J,
+    gap,
+    stress,
+    vel,
+    origin,
+    inv_h,
+    dt,
+    lam,
+    G,
+    contact,
+    trial,
+    material,
 ):
     """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``
     (after a compression closed their contact gaps, which ``gap`` receives)."""
@@ -928,10 +950,15 @@ def _g2p_block_3d(
         v[p, 1] = v1
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        s, gap[p] = trial_stress(read_stress(stress, p), l, dt, lam, G, gap[p], contact)
+        old = read_stress(stress, p)
+        s, gap[p] = trial_stress(old, l, dt, lam, G, gap[p], contact)
         k = p - lo
         for r in range(6):
             trial[r, k] = s[r]
+        if material[8] > 0.0:
+            trial[6, k] = rate_friction(
+                l, old, material[2], material[3], material[8], material[9], material[10]
+            )[0]
 
 
 @njit(**_JIT)
@@ -970,10 +997,12 @@ def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    material : tuple of 8 float
+    material : tuple of 11 float
         ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)`` as for
         :func:`blendxr.flow.mohr_coulomb.update_stress`, then 1.0 to keep the volume
-        gained at the apex or cap as lost contact (``mohr_coulomb.close_gap``), else 0.0.
+        gained at the apex or cap as lost contact (``mohr_coulomb.close_gap``), else 0.0,
+        then the μ(I) friction's ``(rise, I0, inertial_scale)``
+        (:func:`blendxr.flow.mohr_coulomb.rate_friction`; rise 0: rate-independent).
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
     work : tuple of ndarray
@@ -1015,9 +1044,9 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
-    material : tuple of 8 float
-        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, lost_contact)``
-        as for :func:`g2p_2d`.
+    material : tuple of 11 float
+        ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff, lost_contact, rise,
+        I0, inertial_scale)`` as for :func:`g2p_2d`.
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
     work : tuple of 5 ndarray of float64, shapes (T, rows, B)
@@ -1037,12 +1066,13 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
             n = hi - lo
             _g2p_block_3d(
                 lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, contact,
-                trial[t],
+                trial[t], material,
             )  # fmt: skip
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(
                 lo, n, trial[t], e[t], uw[t], out[t], stress, codes, gap, contact, lam, G,
                 material[2], material[3], material[4], material[5], material[6],
+                material[8] > 0.0,
             )  # fmt: skip
 
 

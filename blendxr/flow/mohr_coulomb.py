@@ -110,6 +110,7 @@ __all__ = [
     "open_gap",
     "p_wave_speed",
     "principal_stresses",
+    "rate_friction",
     "read_stress",
     "return_batch",
     "stress_step",
@@ -700,6 +701,50 @@ def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cuto
 
 
 # --------------------------------------------------------------------------------------
+# Rate-dependent friction: the mu(I) rheology as a friction angle for the return
+# --------------------------------------------------------------------------------------
+# A rate-independent Mohr-Coulomb continuum has no length of its own: a flowing layer
+# thins with the grid that resolves it (the surface speed of a rolling drum does not
+# converge over cells, measured). The mu(I) rheology (GDR MiDi 2004; Jop, Forterre and
+# Pouliquen 2006) brings the grain size in: the friction coefficient rises with the
+# inertial number I = |gamma_dot| d / sqrt(p / rho_s) from mu_s = tan(phi) towards
+# mu_2 = mu_s + rise, mu(I) = mu_s + rise I / (I0 + I). The return then uses the friction
+# angle atan(mu(I)) of the particle's strain rate this step and pressure before it (an
+# explicit rate: the elastic trial bounds the correction, so the elastic time step stays
+# the only limit). |gamma_dot| = sqrt(2 D':D'), the deviatoric rate, which is the shear
+# rate in simple shear; at zero or tensile pressure I is infinite and mu = mu_2.
+
+
+@njit(**_JIT)
+def rate_friction(l, s, sin_phi, cos_phi, rise, i0, inertial_scale):
+    """(sin, cos) of the μ(I) friction angle for a velocity gradient and a stress.
+
+    ``l`` the velocity gradient 9-tuple, ``s`` the stress 6-tuple (tension positive),
+    ``sin_phi, cos_phi`` the quasi-static angle (μs = tan φ), ``rise`` = μ2 − μs (0: the
+    rate-independent model, returned unchanged), ``i0`` the inertial number scale I0,
+    ``inertial_scale`` = d sqrt(ρs) (grain diameter times the root of the grain
+    density), so that I = |γ̇| inertial_scale / sqrt(p).
+    """
+    if not rise > 0.0:
+        return sin_phi, cos_phi
+    third = (l[0] + l[4] + l[8]) / 3.0
+    a, b, c = l[0] - third, l[4] - third, l[8] - third
+    d01 = 0.5 * (l[1] + l[3])
+    d02 = 0.5 * (l[2] + l[6])
+    d12 = 0.5 * (l[5] + l[7])
+    rate = math.sqrt(2.0 * (a * a + b * b + c * c + 2.0 * (d01 * d01 + d02 * d02 + d12 * d12)))
+    pressure = -(s[0] + s[1] + s[2]) / 3.0
+    mu = sin_phi / cos_phi
+    if pressure > 0.0:
+        inertial = rate * inertial_scale / math.sqrt(pressure)
+        mu += rise * inertial / (i0 + inertial)
+    else:
+        mu += rise
+    norm = math.sqrt(1.0 + mu * mu)
+    return mu / norm, 1.0 / norm
+
+
+# --------------------------------------------------------------------------------------
 # Batched eigen-decomposition: the steps of _eigh3 as four loops over a block of trial
 # stresses in structure-of-arrays layout. Each loop body is a branch-free step, so LLVM
 # turns the loop into SIMD code (AVX2 / AVX-512: 4 or 8 matrices an instruction) and the
@@ -709,14 +754,15 @@ def _return_general(s, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cuto
 # --------------------------------------------------------------------------------------
 
 #: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`).
-BATCH_ROWS = (6, 1, 3, 6, 5)
+BATCH_ROWS = (7, 1, 3, 6, 5)  # the trials' 7th row: each particle's sin(phi)
 
 
 def batch_work(threads, block):
     """Work arrays of :func:`eigh3_batch` for ``threads`` chunks of ``block`` particles.
 
     Returns a tuple of five float64 arrays of shape (threads, rows, block): the trial
-    stresses (6 rows: xx, yy, zz, xy, xz, yz), the far eigenvalue, its eigenvector, the
+    stresses (6 rows: xx, yy, zz, xy, xz, yz, then a 7th for the particle's sin φ under
+    a rate-dependent friction, :func:`rate_friction`), the far eigenvalue, its eigenvector, the
     orthonormal pair spanning the plane orthogonal to it, and the eigenvalues with the
     2×2 rotation (far, larger, smaller, c, s).
     """
@@ -786,15 +832,19 @@ def write_stress(stress, p, s):
 
 @njit(**_JIT)
 def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, contact, lam, G, sin_phi,
-                 cos_phi, cohesion, sin_psi, tension_cutoff):  # fmt: skip
+                 cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent=False):  # fmt: skip
     """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
 
     Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i``,
     ``codes`` its return code and, if ``contact``, ``gap`` (N) what an apex or cap return
     adds to it (:func:`open_gap`). Trials outside :data:`SAFE_RANGE` are decomposed again by the
-    scalar, rescaling :func:`_eigh3`.
+    scalar, rescaling :func:`_eigh3`. With ``rate_dependent`` each particle's sin φ is
+    ``trial[6, i]`` (:func:`rate_friction`) instead of ``sin_phi``.
     """
     for i in range(n):
+        if rate_dependent:
+            sin_phi = trial[6, i]
+            cos_phi = math.sqrt(1.0 - sin_phi * sin_phi)
         s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
         size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
         if SAFE_RANGE[0] <= size <= SAFE_RANGE[1]:

@@ -13,7 +13,7 @@ import itertools
 import numpy as np
 
 from .kernels import GRID_MASS_TINY
-from .mohr_coulomb_reference import update_stresses
+from .mohr_coulomb_reference import update_stress, update_stresses
 
 __all__ = [
     "bulk_pressure",
@@ -101,10 +101,12 @@ def grid_update(
     return vel
 
 
-def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material):
+def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material, rate=None):
     """Gather, advect, update J and volume, then the stress with the twin of the
     Mohr-Coulomb update (:mod:`blendxr.flow.mohr_coulomb_reference`) and ``L = C``.
 
+    ``rate = (rise, I0, inertial_scale)`` turns on the μ(I) friction (twin of
+    ``mohr_coulomb.rate_friction``): each particle returns with the angle atan(μ(I)).
     Returns ``(x, v, C, vol, J, stress, codes)`` as new arrays.
     """
     n, d = x.shape
@@ -118,8 +120,31 @@ def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material):
     L = np.zeros((n, 3, 3))
     L[:, :d, :d] = C_new
     growth = np.linalg.det(np.eye(d) + dt * C_new)
-    new_stress, codes = update_stresses(stress, L, np.ones(n, bool), dt, *material)
+    if rate is None:
+        new_stress, codes = update_stresses(stress, L, np.ones(n, bool), dt, *material)
+    else:
+        sin_phi, cos_phi = rate_friction(L, stress, material[2], material[3], *rate)
+        new_stress = np.empty_like(stress)
+        codes = np.empty(n, np.int8)
+        for p in range(n):
+            new_stress[p], codes[p] = update_stress(
+                stress[p], L[p], dt, *material[:2], sin_phi[p], cos_phi[p], *material[4:]
+            )
     return x + dt * v_new, v_new, C_new, vol * growth, J * growth, new_stress, codes
+
+
+def rate_friction(L, stress, sin_phi, cos_phi, rise, i0, inertial_scale):
+    """sin and cos of atan(μ(I)) per particle, μ(I) = tan φ + rise I / (I0 + I) with
+    I = |γ̇| inertial_scale / sqrt(p), |γ̇| = sqrt(2 D':D'), p = −tr σ / 3 (μ2 where
+    p <= 0)."""
+    D = 0.5 * (L + L.transpose(0, 2, 1))
+    dev = D - np.trace(D, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
+    rate = np.sqrt(2.0 * np.einsum("pij,pij->p", dev, dev))
+    pressure = -np.trace(stress, axis1=1, axis2=2) / 3.0
+    with np.errstate(divide="ignore"):
+        inertial = np.where(pressure > 0, rate * inertial_scale / np.sqrt(np.abs(pressure)), np.inf)
+    mu = sin_phi / cos_phi + np.where(np.isinf(inertial), rise, rise * inertial / (i0 + inertial))
+    return mu / np.sqrt(1.0 + mu**2), 1.0 / np.sqrt(1.0 + mu**2)
 
 
 def deposit(x, v, vol, origin_out, inv_h_out, shape_out):

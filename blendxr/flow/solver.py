@@ -88,6 +88,15 @@ class Material:
     lost_contact : bool
         Keep the volume gained at the apex or cap as a gap that compaction closes
         stress-free (``mohr_coulomb.close_gap``); off by default.
+    friction_angle_limit_deg : float, optional
+        The μ(I) rheology's limit angle, atan(μ2) > φ (``mohr_coulomb.rate_friction``);
+        None (default): rate-independent Mohr-Coulomb, the paper's model.
+    inertial_number_i0 : float
+        The μ(I) rheology's I0.
+    particle_diameter : float
+        Grain diameter d, m (the μ(I) rheology's length).
+    packing_fraction : float
+        Solid fraction: the grain density is density / packing_fraction.
     """
 
     density: float = 1500.0
@@ -100,12 +109,24 @@ class Material:
     stiffness_scaling: float = 1.0
     tension_cutoff: bool = True
     lost_contact: bool = False
+    friction_angle_limit_deg: float | None = None
+    inertial_number_i0: float = 0.279
+    particle_diameter: float = 0.012
+    packing_fraction: float = 0.6
     bulk_viscosity_linear: float = 0.06
     bulk_viscosity_quadratic: float = 1.2
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Material:
         m, s = scene["material"], scene["solver"]
+        limit = m.get("friction_angle_limit_deg")
+        if limit is not None and not limit > m["friction_angle_deg"]:
+            raise SceneError(
+                [
+                    f"material.friction_angle_limit_deg = {limit!r} is out of range; allowed: "
+                    f"> material.friction_angle_deg ({m['friction_angle_deg']!r}) and < 90"
+                ]
+            )
         return cls(
             density=m["density"],
             youngs_modulus=m["youngs_modulus"],
@@ -117,6 +138,10 @@ class Material:
             stiffness_scaling=s["stiffness_scaling"],
             tension_cutoff=s["tension_cutoff"],
             lost_contact=s["lost_contact"],
+            friction_angle_limit_deg=None if limit is None else float(limit),
+            inertial_number_i0=m.get("inertial_number_i0", 0.279),
+            particle_diameter=m["particle_diameter"],
+            packing_fraction=m["packing_fraction"],
             bulk_viscosity_linear=s["bulk_viscosity_linear"],
             bulk_viscosity_quadratic=s["bulk_viscosity_quadratic"],
         )
@@ -153,6 +178,17 @@ class Material:
             cutoff = 0.0
         values = (k, g, math.sin(phi), math.cos(phi), self.cohesion, math.sin(psi), cutoff)
         return tuple(float(a) for a in values)  # one compiled signature: all float64
+
+    def rate_arguments(self) -> tuple[float, float, float]:
+        """(μ2 − μs, I0, d sqrt(ρs)) of the μ(I) friction; rise 0 when rate-independent."""
+        if self.friction_angle_limit_deg is None:
+            return 0.0, 1.0, 0.0
+        rise = math.tan(math.radians(self.friction_angle_limit_deg)) - math.tan(
+            math.radians(self.friction_angle_deg)
+        )
+        grain_density = self.density / self.packing_fraction
+        scale = self.particle_diameter * math.sqrt(grain_density)
+        return float(rise), float(self.inertial_number_i0), float(scale)
 
 
 # ----------------------------------------------------------------------------- state
@@ -482,9 +518,12 @@ class FlowSimulation:
             self.vessel, s.cell, _threads(self.particles.count), mirror=self.mirror
         )
         self.bulk = self.material.bulk_viscosity(s.cell)
-        # the G2P kernels' material tuple: the return's constants, then 1.0 for lost contact
-        self.stress_arguments = self.material.return_arguments() + (
-            1.0 if self.material.lost_contact else 0.0,
+        # the G2P kernels' material tuple: the return's constants, 1.0 for lost contact,
+        # the mu(I) friction's constants
+        self.stress_arguments = (
+            self.material.return_arguments()
+            + (1.0 if self.material.lost_contact else 0.0,)
+            + self.material.rate_arguments()
         )
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
         self.reflected = 0
