@@ -41,8 +41,12 @@ reference on a 15 mm output grid, at 30 rpm (shorter revolutions), and estimates
 full run's time from its own timings. ``--report`` rewrites the Markdown and the plot
 from the JSON without running anything.
 
+``--mu-i LIMIT_DEG DIAMETER_MM`` runs the same with the optional mu(I) friction
+(``material.friction_angle_limit_deg``, ``material.particle_diameter``; docs/flow.md).
+
 Writes ``benchmarks/results/flow_work_precision.{json,md,png}`` (with ``--quick``:
-``flow_work_precision_quick.{json,md,png}``, so the real results stay).
+``flow_work_precision_quick.{json,md,png}``, so the real results stay; with ``--mu-i``:
+``flow_work_precision_mu_i.*``).
 """
 
 from __future__ import annotations
@@ -124,7 +128,7 @@ def scene(cell: float, settings: dict, name: str | None = None) -> dict:
         "vessel": {"kind": "drum", "ndim": 2, "diameter": DIAMETER},
         "operation": {"rpm": settings["rpm"]},
         "fill": {"fraction": FILL},
-        "material": {"cohesion": COHESION},
+        "material": {"cohesion": COHESION, **_mu_i_material(settings)},
         "flow": {"cell": settings["flow_cell_m"]},
         "solver": {
             "cell": cell,
@@ -134,6 +138,14 @@ def scene(cell: float, settings: dict, name: str | None = None) -> dict:
             "checkpoint_every": 1e9,
         },
     }
+
+
+def _mu_i_material(settings: dict) -> dict:
+    """The material keys of the optional mu(I) friction (``--mu-i``)."""
+    if settings.get("mu_i") is None:
+        return {}
+    limit, diameter = settings["mu_i"]
+    return {"friction_angle_limit_deg": limit, "particle_diameter": diameter}
 
 
 def simulated_time(settings: dict) -> float:
@@ -528,6 +540,16 @@ def plot(payload: dict, path) -> None:
     write_atomic(path, buffer.getvalue())
 
 
+def _rheology_text(s: dict) -> str:
+    if s.get("mu_i") is None:
+        return "Rheology: rate-independent Mohr-Coulomb (the paper's model).\n\n"
+    limit, diameter = s["mu_i"]
+    return (
+        f"Rheology: **mu(I)** friction (`material.friction_angle_limit_deg = {limit:g}`, "
+        f"grain diameter {diameter * 1000:g} mm, I0 = 0.279; docs/flow.md).\n\n"
+    )
+
+
 def render(payload: dict, name: str) -> None:
     """Print the tables and write <name>.md and <name>.png from the results."""
     info, s = payload["machine"], payload["settings"]
@@ -570,7 +592,7 @@ update somewhat faster, so this errs long).
 Machine: {machine_line(info)}. Whole script {payload["total_s"]:.0f} s (warm-up
 {s["warm_up_s"]:.1f} s).
 
-{quick}Scene: the drum of `flow_drum.py`: {s["diameter_m"] * 1000:g} mm across,
+{quick}{_rheology_text(s)}Scene: the drum of `flow_drum.py`: {s["diameter_m"] * 1000:g} mm across,
 `fill.fraction = {s["fill_fraction"]}`, {s["rpm"]:g} rpm, cohesion {s["cohesion_pa"]:g} Pa,
 E / {s["stiffness_scaling"]:g} (`solver.stiffness_scaling`), settled {s["settle_time_s"]} s,
 {s["revolutions"]} revolutions, lab-frame average of the last one. The MPM cell
@@ -649,8 +671,16 @@ def main(argv: list[str] | None = None) -> None:
         help=f"only rewrite {NAME}.md and {NAME}.png from results/{NAME}.json "
         "(with --quick: the _quick files)",
     )
+    parser.add_argument(
+        "--mu-i",
+        nargs=2,
+        type=float,
+        metavar=("LIMIT_DEG", "DIAMETER_MM"),
+        help="the optional mu(I) friction: limit angle (deg) and grain diameter (mm); "
+        f"writes results/{NAME}_mu_i.*",
+    )
     args = parser.parse_args(argv)
-    name = f"{NAME}_quick" if args.quick else NAME
+    name = NAME + ("_mu_i" if args.mu_i else "") + ("_quick" if args.quick else "")
     if args.report:
         payload = json.loads((RESULTS / f"{name}.json").read_text())
     else:
@@ -662,6 +692,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.flow_cell is not None:
             settings["flow_cell_m"] = args.flow_cell
         settings["cells_m"] = sorted(settings["cells_m"], reverse=True)
+        if args.mu_i:
+            settings["mu_i"] = [args.mu_i[0], args.mu_i[1] / 1000.0]
         if settings["reference_m"] >= min(settings["cells_m"]):
             parser.error("the reference cell must be finer than every solver cell")
         payload = measure(settings, name, args.quick)
