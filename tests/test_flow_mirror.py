@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from blendxr.flow import kernels
-from blendxr.flow.solver import FlowSimulation, _particle_dataset
+from blendxr.flow.solver import FlowSimulation, PhaseAverager, _particle_dataset
 from blendxr.flow.walls import reflect_across_mirror
 from blendxr.scene import SceneError, load_scene
 from blendxr.vessels import fill_from_scene, vessel_from_scene
@@ -159,3 +159,23 @@ def test_outputs_of_a_half_run_describe_the_whole_bed(tmp_path):
     again = FlowSimulation(scene)
     again.load_checkpoint(tmp_path / "c.nc")
     np.testing.assert_array_equal(again.particles.image_colour, sim.particles.image_colour)
+
+
+def test_phase_averages_of_a_half_bed_are_those_of_the_bed_and_its_image():
+    rng = np.random.default_rng(5)
+    h, shape = 0.02, (6, 5, 8)
+    lower = np.array([-0.06, -0.05, -0.08])
+    x = rng.uniform([-0.06, -0.05, 0.0], [0.06, 0.05, 0.08], (400, 3))
+    v = rng.normal(size=(400, 3))
+    vol = rng.uniform(1e-6, 2e-6, 400)
+    whole = PhaseAverager(lower, shape, h, 2, halves=True)
+    half = PhaseAverager(lower, shape, h, 2, halves=True, mirror=True)
+    assert half.vol.shape[-1] == shape[2] // 2  # only the upper half accumulates
+    for k in (0, 1):
+        whole.add(k, np.concatenate([x, x * MIRROR]), np.concatenate([v, v * MIRROR]),
+                  np.tile(vol, 2))  # fmt: skip
+        half.add(k, x, v, vol)
+    for got, want in zip(half.fields(), whole.fields(), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-15)
+    with pytest.raises(ValueError, match="symmetric about z = 0"):
+        PhaseAverager(lower + [0, 0, 0.01], shape, h, 2, mirror=True)

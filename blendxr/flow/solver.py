@@ -367,8 +367,10 @@ class PhaseAverager:
 
     Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
     of a bin is its mean particle volume per cell over its samples, the velocity its
-    volume-weighted mean. With ``mirror`` the particles stand for themselves and their
-    mirror images across z = 0 (a mirror-symmetric run): the fields add the reflection.
+    volume-weighted mean. With ``mirror`` the particles, all at z >= 0, stand for
+    themselves and their mirror images across z = 0 (a mirror-symmetric run): only the
+    upper half of the (symmetric) output grid accumulates, and the fields are the whole
+    grid's, the lower half the reflection of the upper.
     With ``halves``, even- and odd-numbered particles are kept apart (their sum is the
     same average): two estimates of the same field from disjoint halves of the
     particles, whose difference measures the sampling noise of the average
@@ -378,20 +380,24 @@ class PhaseAverager:
     def __init__(
         self, lower: np.ndarray, shape: tuple, h: float, phases: int, halves=False, mirror=False
     ):
-        self.origin = np.asarray(lower, float)
+        self.origin = np.array(lower, float)
         self.shape = tuple(shape)
         self.h = float(h)
         self.phases = int(phases)
         self.ndim = len(shape)
-        parts = 2 if halves else 1
-        self.vol = np.zeros((parts, phases, *shape))
-        self.mom = np.zeros((parts, phases, *shape, self.ndim))
-        self.samples = np.zeros(phases, np.int64)
         self.mirror = bool(mirror)
-        if self.mirror and not math.isclose(
-            -self.origin[2], self.origin[2] + self.h * shape[2], abs_tol=1e-9 * self.h
-        ):
-            raise ValueError("mirror: the output grid must be symmetric about z = 0")
+        if self.mirror:
+            # the particles lie at z >= 0: only the upper half of the cells is kept
+            if shape[2] % 2 or not math.isclose(
+                -self.origin[2], self.origin[2] + self.h * shape[2], abs_tol=1e-9 * self.h
+            ):
+                raise ValueError("mirror: the output grid must be symmetric about z = 0")
+            self.origin[2] = 0.0
+            self.shape = (*shape[:2], shape[2] // 2)
+        parts = 2 if halves else 1
+        self.vol = np.zeros((parts, phases, *self.shape))
+        self.mom = np.zeros((parts, phases, *self.shape, self.ndim))
+        self.samples = np.zeros(phases, np.int64)
 
     def bin_of(self, phase: float) -> int:
         return int(math.floor(phase * self.phases + 0.5)) % self.phases
@@ -415,11 +421,11 @@ class PhaseAverager:
 
     def _fields(self, vol, mom):
         if self.mirror:
-            # the particles' mirror images, deposited by reflecting the cells about z = 0
-            vol = vol + vol[..., ::-1]
+            # the lower half of the cells: the reflection of the upper half
+            vol = np.concatenate([vol[..., ::-1], vol], axis=-1)
             image = mom[..., ::-1, :].copy()
             image[..., 2] *= -1.0
-            mom = mom + image
+            mom = np.concatenate([image, mom], axis=-2)
         if np.any(self.samples == 0):
             empty = np.flatnonzero(self.samples == 0).tolist()
             raise RuntimeError(f"phase bins {empty} received no samples; use fewer phases")
