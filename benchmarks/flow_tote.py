@@ -155,7 +155,7 @@ def paper_case(scaling, revolutions=3) -> dict:
         "fill": 0.4,
         "cell_m": PAPER_CELL,
         "stiffness_scaling": scaling,
-        "particles": sim.particles.count * (2 if sim.mirror else 1),
+        "particles": sim.particles.count * sim.copies,
         "particles_solved": sim.particles.count,
         "dt_s": sim.stable_dt(),
         "steps_two_revolutions": n2,

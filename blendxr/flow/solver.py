@@ -56,7 +56,6 @@ GRID_PADDING = 3  # empty nodes around the vessel's bounding box (B-spline suppo
 DEFAULT_PHASES = 36
 WALL_BAND = 0.5  # nodes closer to the wall than this many cells get the wall law (docs/flow.md)
 WALL_SKIN = 1e-3  # projected particles land this many cells inside the wall
-SYMMETRY_MODES = ("auto", "mirror-z", "none")
 
 
 class FlowBlowUpError(RuntimeError):
@@ -139,7 +138,7 @@ class Material:
             tension_cutoff=s["tension_cutoff"],
             lost_contact=s["lost_contact"],
             friction_angle_limit_deg=None if limit is None else float(limit),
-            inertial_number_i0=m.get("inertial_number_i0", 0.279),
+            inertial_number_i0=m["inertial_number_i0"],
             particle_diameter=m["particle_diameter"],
             packing_fraction=m["packing_fraction"],
             bulk_viscosity_linear=s["bulk_viscosity_linear"],
@@ -329,12 +328,6 @@ class SolverSettings:
         duration = op.get("duration")
         if rpm == 0 and duration is None:
             faults.append("operation.duration: needed when operation.rpm = 0")
-        symmetry = s.get("symmetry", "auto")
-        if symmetry not in SYMMETRY_MODES:
-            faults.append(
-                f"solver.symmetry = {symmetry!r} is out of range; allowed: "
-                + ", ".join(repr(m) for m in SYMMETRY_MODES)
-            )
         if faults:
             raise SceneError(faults)
         phases = int(fl.get("phases", DEFAULT_PHASES))
@@ -355,7 +348,7 @@ class SolverSettings:
             average_window=s.get("average_window"),
             checkpoint_every=float(s["checkpoint_every"]),
             seed=int(s["seed"]),
-            symmetry=symmetry,
+            symmetry=s["symmetry"],
         )
 
 
@@ -514,6 +507,7 @@ class FlowSimulation:
         self._output_grid()
         positions, volume = self._seed()
         self.mirror = self._mirror_symmetric(positions)
+        self.copies = 2 if self.mirror else 1  # bed particles per solved particle
         if self.mirror:
             positions = np.ascontiguousarray(positions[positions[:, 2] > 0.0])
         self.particles = Particles(positions, volume, self.material.density, self.mirror)
@@ -991,7 +985,7 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
     attrs = {
         "solver": "MLS-MPM/APIC, quadratic B-splines, Mohr-Coulomb (blendxr.flow.solver)",
         "solver_cell_m": s.cell,
-        "particles": sim.particles.count * (2 if sim.mirror else 1),
+        "particles": sim.particles.count * sim.copies,
         "particles_solved": sim.particles.count,
         "mirror_plane": "z = 0 (half the bed solved)" if sim.mirror else "none",
         "particles_per_cell": s.per_cell,
@@ -1004,7 +998,7 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
         "p_wave_speed_m_s": sim.material.p_wave_speed,
         "courant": s.courant,
         "dt_last_s": sim.stable_dt(),
-        "material_volume_m3": float(sim.particles.vol0.sum()) * (2 if sim.mirror else 1),
+        "material_volume_m3": float(sim.particles.vol0.sum()) * sim.copies,
         "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
         "current_volume_over_seeded": float(sim.particles.vol.sum() / sim.particles.vol0.sum()),
         "fill_clipped_max": float(raw.max()),
