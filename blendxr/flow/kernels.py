@@ -848,14 +848,14 @@ def _g2p_block_3d(
     origin,
     inv_h,
     dt,
-    lam,
-    G,
-    contact,
     trial,
     material,
 ):
     """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``
     (after a compression closed their contact gaps, which ``gap`` receives)."""
+    G = material[1]
+    lam = material[0] - 2.0 * G / 3.0
+    contact = material[7] > 0.0
     nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
     for p in range(lo, hi):
@@ -1065,8 +1065,7 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
             hi = min(lo + block, starts[t + 1])
             n = hi - lo
             _g2p_block_3d(
-                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, lam, G, contact,
-                trial[t], material,
+                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, trial[t], material
             )  # fmt: skip
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(
