@@ -92,7 +92,7 @@ CASES = [("tote-3d", tote, c) for c in (0.015, 0.0075, 0.005)] + [
 
 def particle_bytes(sim) -> int:
     p = sim.particles
-    arrays = [getattr(p, n) for n in p.FIELDS] + [p.codes]
+    arrays = [getattr(p, n) for n in p.fields] + [p.codes]
     return sum(a.nbytes for a in arrays)
 
 

@@ -69,6 +69,7 @@ import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 
+import flow_drum  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import (  # noqa: E402
@@ -89,10 +90,11 @@ from blendxr.flow.diagnostics import surface_line, surface_velocity  # noqa: E40
 from blendxr.flow.solver import solve_flow  # noqa: E402
 
 NAME = "flow_work_precision"
-DIAMETER = 0.15
-FILL = 0.5
+# the drum, its fill and E scaling are flow_drum.py's (its cohesionless case)
+DIAMETER = flow_drum.DIAMETER
+FILL = flow_drum.FILL
 COHESION = 0.0
-STIFFNESS_SCALING = 100.0
+STIFFNESS_SCALING = flow_drum.STIFFNESS_SCALING
 FILL_MASK = 0.5  # output cells compared: fill above this in the run and in the reference
 
 # the scene of flow_drum.py (cohesionless), solver cells in m
@@ -123,21 +125,14 @@ MEASURES = ("l1", "l2", "max", "surface_speed", "angle")
 
 def scene(cell: float, settings: dict, name: str | None = None) -> dict:
     """The drum of flow_drum.py with MPM cell ``cell`` on the common output grid."""
-    return {
-        "name": name or f"drum-2d-work-precision-{cell * 1000:g}mm",
-        "vessel": {"kind": "drum", "ndim": 2, "diameter": DIAMETER},
-        "operation": {"rpm": settings["rpm"]},
-        "fill": {"fraction": FILL},
-        "material": {"cohesion": COHESION, **_mu_i_material(settings)},
-        "flow": {"cell": settings["flow_cell_m"]},
-        "solver": {
-            "cell": cell,
-            "stiffness_scaling": STIFFNESS_SCALING,
-            "settle_time": settings["settle_time_s"],
-            "revolutions": settings["revolutions"],
-            "checkpoint_every": 1e9,
-        },
-    }
+    out = flow_drum.scene(settings["flow_cell_m"], COHESION)
+    out["name"] = name or f"drum-2d-work-precision-{cell * 1000:g}mm"
+    out["operation"] = {"rpm": settings["rpm"]}
+    out["material"].update(_mu_i_material(settings))
+    out["solver"].update(
+        cell=cell, settle_time=settings["settle_time_s"], revolutions=settings["revolutions"]
+    )
+    return out
 
 
 def _mu_i_material(settings: dict) -> dict:
