@@ -22,7 +22,7 @@ times as many) unless ``--unscaled`` runs it too.
 
 Run: ``python benchmarks/flow_tote.py [--unscaled] [--skip-periodicity] [--lost-contact]
 [--symmetry none]``
-(about 30 minutes on 2 cores; ``--unscaled`` adds about 60). Writes
+(about 26 minutes on 2 cores by halves; ``--unscaled`` adds about 31). Writes
 ``benchmarks/results/flow_tote.{json,md}``.
 """
 
