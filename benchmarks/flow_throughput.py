@@ -111,8 +111,8 @@ def kernel_times(sim, dt) -> dict:
 
     def g2p():
         (mpm.g2p_3d if three else mpm.g2p_2d)(
-            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.origin, inv_h,
-            dt, sim.stress_arguments, sim.starts, g.g2p_work,
+            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.mass, g.origin,
+            inv_h, dt, sim.stress_arguments, sim.starts, g.g2p_work,
         )  # fmt: skip
 
     parts = {

@@ -188,11 +188,20 @@ def test_out_of_range_scene_values_name_the_key(section, key, value, fragment):
         solve_flow(scene, progress=False)
 
 
-def test_lost_contact_is_off_unless_the_scene_asks_for_it():
-    assert FlowSimulation(drum_scene(0.4)).stress_arguments[7] == 0.0
+def test_lost_contact_is_on_unless_the_scene_turns_it_off():
     scene = drum_scene(0.4)
-    scene["solver"]["lost_contact"] = True
-    assert FlowSimulation(scene).stress_arguments[7] == 1.0
+    scene["solver"]["lost_contact"] = False
+    assert FlowSimulation(scene).stress_arguments[7] == 0.0
+    sim = FlowSimulation(drum_scene(0.4))
+    # the inverse of a node's mass at the seeded packing: an interior node of the
+    # freshly seeded bed holds exactly that mass after the first P2G
+    sim.step(sim.stable_dt())
+    g = sim.grid
+    centre = tuple(
+        np.argmin(np.abs(g.origin[a] + g.h * np.arange(n))) for a, n in enumerate(g.shape)
+    )
+    deep = (centre[0], centre[1] - round(0.04 / g.h))  # 40 mm below the drum's centre
+    assert sim.stress_arguments[7] * g.mass[deep] == pytest.approx(1.0, rel=1e-9)
 
 
 def test_mu_of_i_is_off_unless_the_scene_asks_for_it():

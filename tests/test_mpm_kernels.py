@@ -80,7 +80,8 @@ MATERIAL = (
     *(float(k) for k in mohr_coulomb.elastic_constants(3.65e4, 0.065)[:2]),
     math.sin(_PHI), math.cos(_PHI), 87.0, math.sin(_PSI), 87.0 / math.tan(_PHI),
 )  # fmt: skip
-#: The G2P kernels' material: MATERIAL, the lost-contact switch (on), no mu(I)
+#: The G2P kernels' material: MATERIAL, lost contact on (the inverse of a node's mass at
+#: the seeded packing, 1 kg: the tests' grids hold no mass, or what they say), no mu(I)
 G2P_MATERIAL = (*MATERIAL, 1.0, 0.0, 1.0, 0.0)
 #: mu(I) with mu_2 - mu_s = 0.26, I0 = 0.279 (Jop et al. 2006) and d sqrt(rho_s) = 1 (a
 #: 20 mm grain of 2500 kg/m3): at the test's rates and pressures I is of order I0, so
@@ -88,18 +89,25 @@ G2P_MATERIAL = (*MATERIAL, 1.0, 0.0, 1.0, 0.0)
 RATE = (0.26, 0.279, 1.0)
 
 
-def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None):
-    """Run the numba G2P on copies; return (x, v, C, vol, J, stress, codes, gap)."""
+def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None, mass=None):
+    """Run the numba G2P on copies; return (x, v, C, vol, J, stress, codes, gap).
+
+    ``mass``: the node masses (default none: no packing bounds the contact gap)."""
     if stress is None:
         stress = np.zeros((len(x), 3, 3))
     if gap is None:
         gap = np.zeros(len(x))
+    if mass is None:
+        mass = np.zeros(vel.shape[:-1])
     x, v, C, vol, J, stress, gap = (a.copy() for a in (x, v, C, vol, J, stress, gap))
     codes = np.full(len(x), -9, np.int8)
     # two chunks in blocks of 16: full and partial blocks of the batched 3-D stress update
     starts = kernels.chunk_starts(len(x), 2)
     work = tuple(np.full(w.shape, np.nan) for w in mohr_coulomb.batch_work(2, 16))
-    G2P[d](x, v, C, vol, J, gap, stress, codes, vel, ORIGIN[d], INV_H, dt, material, starts, work)
+    G2P[d](
+        x, v, C, vol, J, gap, stress, codes, vel, mass, ORIGIN[d], INV_H, dt, material, starts,
+        work,
+    )  # fmt: skip
     return x, v, C, vol, J, stress, codes, gap
 
 
@@ -352,6 +360,34 @@ def test_g2p_matches_twin_with_the_stress_update(d, rate):
             f = mohr_coulomb.yield_value(got[5][p], sin_i[p], cos_i[p], MATERIAL[4])
             assert abs(f) < 1e-9 * np.abs(got[5][p]).max()
             assert mohr_coulomb.yield_value(got[5][p], *MATERIAL[2:5]) > 0.0
+
+
+@DIMS
+def test_contact_gap_is_bounded_by_the_packing_on_the_grid(d):
+    # at rest and stress-free nothing opens or closes a gap; what G2P does to it is the
+    # cap at the packing deficit 1 - sum w m_i / (rho h^d) of the node masses around it
+    rng = np.random.default_rng(21)
+    x, *_ = _particles(d, n=200, seed=21)
+    n = len(x)
+    packed = 2.5e-3  # kg at a node at the seeded packing
+    mass = packed * rng.uniform(0.0, 1.3, SHAPES[d])  # holes, loose and over-packed nodes
+    mass[: SHAPES[d][0] // 2] = 1.1 * packed  # and a region denser than the seeded packing
+    gap = rng.uniform(0.0, 0.6, n)
+    material = G2P_MATERIAL[:7] + (1.0 / packed,) + G2P_MATERIAL[8:]
+    zero = np.zeros((*SHAPES[d], d))
+    state = (x, np.zeros((n, d)), np.zeros((n, d, d)), np.full(n, 1e-6), np.ones(n))
+    *_, stress, codes, got = _g2p(d, *state, zero, 1e-3, material=material, gap=gap, mass=mass)
+    expected = reference.bounded_gap(x, gap, mass, ORIGIN[d], INV_H, 1.0 / packed)
+    _close(got, expected, rtol=1e-13)
+    assert np.all(codes == mohr_coulomb.ELASTIC) and np.all(stress == 0.0)
+    capped = expected < gap
+    assert 0 < capped.sum() < n and np.any(expected == 0.0)  # all three cases occur
+    # where the nodes hold no mass the gap is kept; with lost contact off it is kept too
+    kept = _g2p(d, *state, zero, 1e-3, material=material, gap=gap)[-1]
+    np.testing.assert_array_equal(kept, gap)
+    off = G2P_MATERIAL[:7] + (0.0,) + G2P_MATERIAL[8:]
+    off_run = _g2p(d, *state, zero, 1e-3, material=off, gap=gap, mass=mass)
+    np.testing.assert_array_equal(off_run[-1], gap)
 
 
 # ---------------------------------------------------------------------------------------

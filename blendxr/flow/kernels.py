@@ -767,6 +767,21 @@ def grid_update_3d(
 
 
 @njit(**_JIT_SERIAL)
+def _bounded_gap(gap, packing):
+    """The contact gap a particle may keep where the grid holds ``packing`` times the
+    seeded packing's mass: at most ``1 - packing``, the volume per unit volume that the
+    material around it really lacks.
+
+    The gap itself integrates the divergence of the particle's own motion, which drifts
+    from the packing it describes (a gap opened by the noisy divergence of stress-free
+    particles would close more than the grains had opened, and a bed compacts past its
+    seeded packing); the node masses are exact and conserved, so where the material is
+    at its seeded packing or denser no volume is left to close without stress.
+    """
+    return min(gap, max(0.0, 1.0 - packing))
+
+
+@njit(**_JIT_SERIAL)
 def _stress_update(stress, codes, gap, p, l, dt, material):
     """Mohr-Coulomb update of particle p's stress (and contact gap) with the gradient ``l``."""
     old = read_stress(stress, p)
@@ -781,9 +796,12 @@ def _stress_update(stress, codes, gap, p, l, dt, material):
 
 
 @njit(**_JIT_SERIAL)
-def _g2p_range_2d(lo, hi, x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material):
+def _g2p_range_2d(
+    lo, hi, x, v, C, vol, J, gap, stress, codes, vel, mass, origin, inv_h, dt, material
+):
     """G2P and stress update of particles lo:hi (see :func:`g2p_2d`)."""
     nx, ny = vel.shape[0], vel.shape[1]
+    contact = material[7] > 0.0
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
     for p in range(lo, hi):
         bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
@@ -814,6 +832,14 @@ def _g2p_range_2d(lo, hi, x, v, C, vol, J, gap, stress, codes, vel, origin, inv_
             if a > 0:
                 b00 += a * l0
                 b10 += a * l1
+        if contact:
+            packing = 0.0
+            for a in range(3):
+                i = bx + a
+                packing += wx[a] * (
+                    wy0 * mass[i, by] + wy1 * mass[i, by + 1] + wy2 * mass[i, by + 2]
+                )
+            gap[p] = _bounded_gap(gap[p], packing * material[7])
         c00 = scale * (b00 - v0 * rx)
         c01 = scale * (b01 - v0 * ry)
         c10 = scale * (b10 - v1 * rx)
@@ -845,6 +871,7 @@ def _g2p_block_3d(
     gap,
     stress,
     vel,
+    mass,
     origin,
     inv_h,
     dt,
@@ -908,6 +935,16 @@ def _g2p_block_3d(
                     b01 += b * l0
                     b11 += b * l1
                     b21 += b * l2
+        if contact:
+            packing = 0.0
+            for a in range(3):
+                i = bx + a
+                for b in range(3):
+                    j = by + b
+                    packing += (wx[a] * wy[b]) * (
+                        wz0 * mass[i, j, bz] + wz1 * mass[i, j, bz + 1] + wz2 * mass[i, j, bz + 2]
+                    )
+            gap[p] = _bounded_gap(gap[p], packing * material[7])
         c00 = scale * (b00 - v0 * rx)
         c01 = scale * (b01 - v0 * ry)
         c02 = scale * (b02 - v0 * rz)
@@ -962,7 +999,9 @@ def _g2p_block_3d(
 
 
 @njit(**_JIT)
-def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material, starts, work):
+def g2p_2d(
+    x, v, C, vol, J, gap, stress, codes, vel, mass, origin, inv_h, dt, material, starts, work
+):
     """Gather velocities and affine matrices, advect, update the stress (2-D plane strain).
 
     Per particle: ``v = sum w v_i``, ``C = D^-1 sum w v_i (x_i - x)^T`` (``D^-1 = 4/h**2``);
@@ -993,14 +1032,19 @@ def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Receives the return code of each particle's stress update (``mohr_coulomb``).
     vel : ndarray of float64, shape (nx, ny, 2)
         Node velocities [m/s] from :func:`grid_update_2d`.
+    mass : ndarray of float64, shape (nx, ny)
+        Node masses [kg/m] of the same step (read only with lost contact).
     origin : ndarray of float64, shape (2,)
         Position of node 0 [m].
     inv_h, dt : float
         Inverse node spacing [1/m], time step [s].
     material : tuple of 11 float
         ``(K, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff)`` as for
-        :func:`blendxr.flow.mohr_coulomb.update_stress`, then 1.0 to keep the volume
-        gained at the apex or cap as lost contact (``mohr_coulomb.close_gap``), else 0.0,
+        :func:`blendxr.flow.mohr_coulomb.update_stress`; then, to keep the volume
+        gained at the apex or cap as lost contact (``mohr_coulomb.close_gap``), the
+        inverse of a node's mass at the seeded packing, ``1 / (ρ h**d)`` (else 0.0):
+        before its stress update each particle's gap is capped at ``1 - sum w m_i / (ρ
+        h**d)``, what the material around it lacks of that packing (:func:`_bounded_gap`);
         then the μ(I) friction's ``(rise, I0, inertial_scale)``
         (:func:`blendxr.flow.mohr_coulomb.rate_friction`; rise 0: rate-independent).
     starts : ndarray of int64, shape (T + 1,)
@@ -1011,13 +1055,15 @@ def g2p_2d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
     """
     for t in prange(starts.shape[0] - 1):
         _g2p_range_2d(
-            starts[t], starts[t + 1], x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h,
-            dt, material,
+            starts[t], starts[t + 1], x, v, C, vol, J, gap, stress, codes, vel, mass, origin,
+            inv_h, dt, material,
         )  # fmt: skip
 
 
 @njit(**_JIT)
-def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material, starts, work):
+def g2p_3d(
+    x, v, C, vol, J, gap, stress, codes, vel, mass, origin, inv_h, dt, material, starts, work
+):
     """Gather velocities and affine matrices, advect, update the stress (3-D).
 
     As :func:`g2p_2d` in three dimensions.
@@ -1040,6 +1086,8 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
         Receives the return code of each particle's stress update.
     vel : ndarray of float64, shape (nx, ny, nz, 3)
         Node velocities [m/s] from :func:`grid_update_3d`.
+    mass : ndarray of float64, shape (nx, ny, nz)
+        Node masses [kg] of the same step (read only with lost contact).
     origin : ndarray of float64, shape (3,)
         Position of node 0 [m].
     inv_h, dt : float
@@ -1065,7 +1113,8 @@ def g2p_3d(x, v, C, vol, J, gap, stress, codes, vel, origin, inv_h, dt, material
             hi = min(lo + block, starts[t + 1])
             n = hi - lo
             _g2p_block_3d(
-                lo, hi, x, v, C, vol, J, gap, stress, vel, origin, inv_h, dt, trial[t], material
+                lo, hi, x, v, C, vol, J, gap, stress, vel, mass, origin, inv_h, dt, trial[t],
+                material,
             )  # fmt: skip
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(

@@ -16,6 +16,7 @@ from .kernels import GRID_MASS_TINY
 from .mohr_coulomb_reference import update_stress, update_stresses
 
 __all__ = [
+    "bounded_gap",
     "bulk_pressure",
     "deposit",
     "g2p",
@@ -131,6 +132,16 @@ def g2p(x, v, C, vol, J, vel, origin, inv_h, dt, stress, material, rate=None):
                 stress[p], L[p], dt, *material[:2], sin_phi[p], cos_phi[p], *material[4:]
             )
     return x + dt * v_new, v_new, C_new, vol * growth, J * growth, new_stress, codes
+
+
+def bounded_gap(x, gap, mass, origin, inv_h, inverse_packed_mass):
+    """Contact gaps capped at what the material around each particle lacks of the seeded
+    packing: ``min(gap, max(0, 1 - sum w m_i * inverse_packed_mass))`` (twin of
+    ``kernels._bounded_gap`` with its gather)."""
+    packing = np.zeros(len(x))
+    for node, weight, _ in _stencil_nodes(x, origin, inv_h):
+        packing += weight * mass[node]
+    return np.minimum(gap, np.maximum(0.0, 1.0 - packing * inverse_packed_mass))
 
 
 def rate_friction(L, stress, sin_phi, cos_phi, rise, i0, inertial_scale):

@@ -86,7 +86,9 @@ class Material:
         Cap the largest principal stress at c cot(phi).
     lost_contact : bool
         Keep the volume gained at the apex or cap as a gap that compaction closes
-        stress-free (``mohr_coulomb.close_gap``); off by default.
+        stress-free (``mohr_coulomb.close_gap``), bounded by what the material around
+        the particle lacks of its seeded packing (``kernels._bounded_gap``); on by
+        default.
     friction_angle_limit_deg : float, optional
         The μ(I) rheology's limit angle, atan(μ2) > φ (``mohr_coulomb.rate_friction``);
         None (default): rate-independent Mohr-Coulomb, the paper's model.
@@ -107,7 +109,7 @@ class Material:
     wall_friction: float = 0.324
     stiffness_scaling: float = 1.0
     tension_cutoff: bool = True
-    lost_contact: bool = False
+    lost_contact: bool = True
     friction_angle_limit_deg: float | None = None
     inertial_number_i0: float = 0.279
     particle_diameter: float = 0.012
@@ -518,11 +520,13 @@ class FlowSimulation:
             self.vessel, s.cell, _threads(self.particles.count), mirror=self.mirror
         )
         self.bulk = self.material.bulk_viscosity(s.cell)
-        # the G2P kernels' material tuple: the return's constants, 1.0 for lost contact,
-        # the mu(I) friction's constants
+        # the G2P kernels' material tuple: the return's constants, with lost contact the
+        # inverse of a node's mass at the seeded packing (kernels.g2p_2d), the mu(I)
+        # friction's constants
+        packed_node = self.material.density * s.cell**self.ndim
         self.stress_arguments = (
             self.material.return_arguments()
-            + (1.0 if self.material.lost_contact else 0.0,)
+            + (1.0 / packed_node if self.material.lost_contact else 0.0,)
             + self.material.rate_arguments()
         )
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
@@ -674,8 +678,8 @@ class FlowSimulation:
         # G2P updates the stress too; walls: exact distances below, not interpolated ones
         # (biased at convex walls)
         (mpm.g2p_3d if three else mpm.g2p_2d)(
-            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.origin, inv_h,
-            dt, self.stress_arguments, self.starts, g.g2p_work,
+            p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.mass, g.origin,
+            inv_h, dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
         if self.mirror:
             self.reflected += reflect_across_mirror(p.x, p.v, p.C, p.stress, 0.0, self.starts)
