@@ -130,6 +130,23 @@ def periodicity_case(fraction) -> dict:
     }
 
 
+def memory(sim) -> dict:
+    """MiB held by the particles (every per-particle array, return codes included), the
+    background grid (per-thread grids, node fields, wall distances and normals) and the
+    phase accumulators of the last two revolutions."""
+    p, g = sim.particles, sim.grid
+    particles = sum(a.nbytes for a in p.arrays().values()) + p.codes.nbytes
+    grid = g.nbytes + g.node_sdf.nbytes + g.node_normal.nbytes
+    phases = sum(a.vol.nbytes + a.mom.nbytes for a in (sim.last, sim.previous))
+    mib = 2.0**20
+    return {
+        "particles_mib": particles / mib,
+        "bytes_per_particle": particles / p.count,
+        "grid_mib": grid / mib,
+        "phase_accumulators_mib": phases / mib,
+    }
+
+
 def paper_case(scaling, revolutions=3) -> dict:
     """The 40 % Tote at 7.5 mm: wall time at the end of revolution 2, eq. (30) of 2 vs 3."""
     sim = FlowSimulation(tote(0.4, PAPER_CELL, scaling, revolutions, phases=36))
@@ -168,6 +185,7 @@ def paper_case(scaling, revolutions=3) -> dict:
         "deepest_escape_m": deepest[0],
         "valid": True,
         **_attrs(flow),
+        "memory": memory(sim),
         "extrapolated": False,
     }
 
@@ -245,6 +263,17 @@ def main() -> None:
                                  p["steps_two_revolutions"]]
         ],
     )  # fmt: skip
+    text3 = table(
+        ["E scaling", "particles MiB", "B/particle", "grid MiB", "phase accumulators MiB"],
+        [
+            [
+                f"1/{r['stiffness_scaling']:g}", f"{r['memory']['particles_mib']:.1f}",
+                f"{r['memory']['bytes_per_particle']:.0f}", f"{r['memory']['grid_mib']:.1f}",
+                f"{r['memory']['phase_accumulators_mib']:.0f}",
+            ]
+            for r in paper if "memory" in r
+        ],
+    )  # fmt: skip
     text2 = table(
         ["E scaling", "particles", "solved", "steps", "ms/step", "M updates/s",
          "two revolutions min",
@@ -265,6 +294,8 @@ def main() -> None:
     echo(text1)
     echo()
     echo(text2)
+    echo()
+    echo(text3)
     md = (
         "<!-- written by benchmarks/flow_tote.py -->\n"
         f"Machine: {machine_line(info)}.\n\n"
@@ -281,7 +312,10 @@ def main() -> None:
         "on the flow over one revolution (top-bottom loading, 50 cells).\n\n"
         + text1
         + f"\n\nCost of the paper's case: 40 % fill, {PAPER_CELL * 1000:g} mm cell, settling "
-        "plus two revolutions; ms/step over revolution 2.\n\n" + text2 + "\n"
+        "plus two revolutions; ms/step over revolution 2.\n\n" + text2 + "\n\n"
+        "Memory of the paper's case (the solved particles; the grid with the mirror "
+        "plane's padding; 36 phase bins, two revolutions, the last in two halves for the "
+        "noise part).\n\n" + text3 + "\n"
     )
     write_atomic(RESULTS / "flow_tote.md", md)
     payload = {"machine": info, "lost_contact": args.lost_contact, "symmetry": args.symmetry}
