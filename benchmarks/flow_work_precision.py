@@ -537,11 +537,15 @@ def plot(payload: dict, path) -> None:
 
 def _rheology_text(s: dict) -> str:
     if s.get("mu_i") is None:
-        return "Rheology: rate-independent Mohr-Coulomb (the paper's model).\n\n"
+        return (
+            "Rheology: rate-independent Mohr-Coulomb (the paper's model), with lost contact "
+            "bounded by the packing (`solver.lost_contact`, the default; docs/flow.md).\n\n"
+        )
     limit, diameter = s["mu_i"]
     return (
         f"Rheology: **mu(I)** friction (`material.friction_angle_limit_deg = {limit:g}`, "
-        f"grain diameter {diameter * 1000:g} mm, I0 = 0.279; docs/flow.md).\n\n"
+        f"grain diameter {diameter * 1000:g} mm, I0 = 0.279; docs/flow.md), with lost "
+        "contact bounded by the packing (`solver.lost_contact`, the default).\n\n"
     )
 
 
