@@ -64,13 +64,14 @@ One step of :func:`update_stress`
     t = min(tension_cutoff, c cot φ) (t = tension_cutoff when φ = 0): a Rankine cap
     applied after the Mohr–Coulomb return, in the same eigenbasis, not a joint
     closest-point return. It reports code 5 when it lowered a stress.
-(e) Lost contact, optional (:func:`close_gap`, :func:`open_gap`, used by the MPM
-    kernels when the scene sets ``solver.lost_contact``; the single-particle
+(e) Lost contact (:func:`close_gap`, :func:`open_gap`, used by the MPM kernels unless
+    the scene turns ``solver.lost_contact`` off; the single-particle
     :func:`update_stress` has no gap). The volumetric plastic strain of
     an apex or cap return is kept as the particle's gap; a later compression closes the
     gap first, stress-free, and only the rest enters the elastic trial. Without it the
     volume of a flowing layer ratchets up (extension at the apex is free, compression
-    elastic).
+    elastic). The kernels cap each gap at the packing deficit of the node masses around
+    the particle before its update (``kernels._bounded_gap``).
 
 Eigen-decomposition without allocation: when σxz = σyz = 0 after the elastic trial (always
 the case in plane strain, where W and D have no z coupling, since the Cayley rotation then
