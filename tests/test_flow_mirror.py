@@ -73,7 +73,9 @@ def test_reflection_puts_crossed_particles_back_as_their_images():
     v, C, sigma = rng.normal(size=(50, 3)), rng.normal(size=(50, 3, 3)), rng.normal(size=(50, 3, 3))
     before = [a.copy() for a in (x, v, C, sigma)]
     below = x[:, 2] < 0.0
-    count = reflect_across_mirror(x, v, C, sigma, 0.0, kernels.chunk_starts(50, 2))
+    count = reflect_across_mirror(
+        x, v, C, sigma, 0.0, kernels.chunk_starts(50, 2), np.zeros((2, 4))
+    )
     assert count == below.sum() > 0
     for new, old, f in zip((x, v, C, sigma), before, (MIRROR, MIRROR, FLIP, FLIP), strict=True):
         np.testing.assert_array_equal(new[below], old[below] * f)

@@ -682,7 +682,9 @@ class FlowSimulation:
             inv_h, dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
         if self.mirror:
-            self.reflected += reflect_across_mirror(p.x, p.v, p.C, p.stress, 0.0, self.starts)
+            self.reflected += reflect_across_mirror(
+                p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
+            )
         self.projected += project_into_vessel(
             self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
             g.scratch, g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,

@@ -103,7 +103,7 @@ def project_into_vessel(kind, params, x, v, skin, starts, scratch, node_sdf, ori
 
 
 @numba.njit(parallel=True, cache=True)
-def reflect_across_mirror(x, v, C, stress, z0, starts):
+def reflect_across_mirror(x, v, C, stress, z0, starts, scratch):
     """Replace particles below the mirror plane z = z0 by their mirror images (in place).
 
     With a mirror-symmetric flow solved on one side of the plane (see
@@ -124,6 +124,9 @@ def reflect_across_mirror(x, v, C, stress, z0, starts):
         Height of the plane on the z axis (m).
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task.
+    scratch : ndarray of float64, shape (T, 4)
+        Per-task workspace, as for :func:`project_into_vessel` (the last column receives
+        the task's count; the step calls this every step, so nothing is allocated).
 
     Returns
     -------
@@ -131,7 +134,6 @@ def reflect_across_mirror(x, v, C, stress, z0, starts):
         Number of particles reflected.
     """
     tasks = starts.shape[0] - 1
-    counts = np.zeros(tasks, np.int64)
     for t in prange(tasks):
         count = 0
         for p in range(starts[t], starts[t + 1]):
@@ -145,5 +147,8 @@ def reflect_across_mirror(x, v, C, stress, z0, starts):
                 C[p, 2, a] = -C[p, 2, a]
                 stress[p, a, 2] = -stress[p, a, 2]
                 stress[p, 2, a] = -stress[p, 2, a]
-        counts[t] = count
-    return int(counts.sum())
+        scratch[t, 3] = count
+    total = 0
+    for t in range(tasks):
+        total += int(scratch[t, 3])
+    return total
