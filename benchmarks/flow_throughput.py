@@ -90,12 +90,6 @@ CASES = [("tote-3d", tote, c) for c in (0.015, 0.0075, 0.005)] + [
 ]
 
 
-def particle_bytes(sim) -> int:
-    p = sim.particles
-    arrays = [getattr(p, n) for n in p.fields] + [p.codes]
-    return sum(a.nbytes for a in arrays)
-
-
 def kernel_times(sim, dt) -> dict:
     """Milliseconds per call of each part of the step (fastest of 5)."""
     p, g = sim.particles, sim.grid
@@ -170,7 +164,7 @@ def measure(label, build, cell) -> dict:
         "ms_per_step": timed["wall_s"] / STEPS * 1e3,
         "kernels_ms": kernel_times(sim, dt),
         "returns": {name: float(k) / n for name, k in zip(RETURNS, counts, strict=True)},
-        "bytes_per_particle": particle_bytes(sim) / n,
+        "bytes_per_particle": sim.particles.nbytes / n,
         "grid_mib": sim.grid.nbytes / 2**20,
         "dt_s": dt,
         "contention": timed["contention"],

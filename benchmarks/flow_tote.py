@@ -135,15 +135,13 @@ def memory(sim) -> dict:
     background grid (per-thread grids, node fields, wall distances and normals) and the
     phase accumulators of the last two revolutions."""
     p, g = sim.particles, sim.grid
-    particles = sum(a.nbytes for a in p.arrays().values()) + p.codes.nbytes
     grid = g.nbytes + g.node_sdf.nbytes + g.node_normal.nbytes
-    phases = sum(a.vol.nbytes + a.mom.nbytes for a in (sim.last, sim.previous))
     mib = 2.0**20
     return {
-        "particles_mib": particles / mib,
-        "bytes_per_particle": particles / p.count,
+        "particles_mib": p.nbytes / mib,
+        "bytes_per_particle": p.nbytes / p.count,
         "grid_mib": grid / mib,
-        "phase_accumulators_mib": phases / mib,
+        "phase_accumulators_mib": (sim.last.nbytes + sim.previous.nbytes) / mib,
     }
 
 

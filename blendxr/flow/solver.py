@@ -222,6 +222,11 @@ class Particles:
     def count(self) -> int:
         return self.x.shape[0]
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of every per-particle array (the return codes included)."""
+        return sum(a.nbytes for a in self.arrays().values()) + self.codes.nbytes
+
     def permute(self, order: np.ndarray) -> None:
         for name in self.fields:
             setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
@@ -280,6 +285,12 @@ class BackgroundGrid:
 
 
 _MIRROR = np.array([1.0, 1.0, -1.0])  # z -> -z
+
+
+def _centred_in_z(origin: np.ndarray, h: float, shape: tuple) -> bool:
+    """Whether an output grid's cells lie symmetric about the plane z = 0."""
+    top = origin[2] + h * shape[2]
+    return shape[2] % 2 == 0 and math.isclose(-origin[2], top, abs_tol=1e-9 * h)
 
 
 def _rotation(theta: float, ndim: int) -> np.ndarray:
@@ -383,9 +394,7 @@ class PhaseAverager:
         self.mirror = bool(mirror)
         if self.mirror:
             # the particles lie at z >= 0: only the upper half of the cells is kept
-            if shape[2] % 2 or not math.isclose(
-                -self.origin[2], self.origin[2] + self.h * shape[2], abs_tol=1e-9 * self.h
-            ):
+            if not _centred_in_z(self.origin, self.h, self.shape):
                 raise ValueError("mirror: the output grid must be symmetric about z = 0")
             self.origin[2] = 0.0
             self.shape = (*shape[:2], shape[2] // 2)
@@ -393,6 +402,10 @@ class PhaseAverager:
         self.vol = np.zeros((parts, phases, *self.shape))
         self.mom = np.zeros((parts, phases, *self.shape, self.ndim))
         self.samples = np.zeros(phases, np.int64)
+
+    @property
+    def nbytes(self) -> int:
+        return self.vol.nbytes + self.mom.nbytes
 
     def bin_of(self, phase: float) -> int:
         return int(math.floor(phase * self.phases + 0.5)) % self.phases
@@ -589,8 +602,7 @@ class FlowSimulation:
         tol = 1e-9 * float(np.max(upper - lower))
         if not np.allclose(self.vessel.sdf(nodes), self.vessel.sdf(nodes * _MIRROR), atol=tol):
             return "the vessel is not symmetric about z = 0 (tilted or off-centre)"
-        top = self.out_origin[2] + self.settings.output_cell * self.out_shape[2]
-        if not math.isclose(-self.out_origin[2], top, abs_tol=1e-9 * self.settings.output_cell):
+        if not _centred_in_z(self.out_origin, self.settings.output_cell, self.out_shape):
             return "the output grid is not symmetric about z = 0"
         above = positions[positions[:, 2] > 0.0]
         below = positions[positions[:, 2] < 0.0] * _MIRROR
@@ -913,7 +925,7 @@ def _whole_bed(sim: FlowSimulation) -> dict[str, np.ndarray]:
     arrays = {name: getattr(p, name) for name in Particles.FIELDS}
     if not sim.mirror:
         return arrays
-    flip = np.array([[1.0, 1.0, -1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+    flip = np.outer(_MIRROR, _MIRROR)  # R A R for R = diag(_MIRROR)
     images = dict(arrays, x=p.x * _MIRROR, v=p.v * _MIRROR, C=p.C * flip,
                   stress=p.stress * flip, colour=p.image_colour)  # fmt: skip
     return {name: np.concatenate([arrays[name], images[name]]) for name in arrays}
