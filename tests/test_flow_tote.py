@@ -41,6 +41,14 @@ def test_tote_flow_is_valid_stays_inside_and_mixes(fraction):
     assert bed == pytest.approx(fraction * sim.vessel.volume, rel=0.25)
     for key in ("periodicity_vx", "periodicity_vy", "periodicity_vz"):
         assert math.isfinite(flow.attrs[key])
+    # the revolution before, for what the choice of revolution does downstream: its own
+    # averages, the same comparison of the two
+    before = bx.validate(_flow_from(sim, 0.0, "time", revolution="previous"))
+    fill_p, vel_p, _ = sim.previous.fields()
+    np.testing.assert_array_equal(before["vz"].values, vel_p[..., 2])
+    np.testing.assert_array_equal(before["fill"].values, fill_p)
+    assert not np.array_equal(before["vz"].values, flow["vz"].values)
+    assert before.attrs["periodicity_vz"] == flow.attrs["periodicity_vz"]
     mixed = bx.mix(flow, revolutions=0.5, cells=20, output_every=0.25, progress=False)
     assert np.isfinite(mixed["rsd"]).all()
     assert mixed.attrs["mass_a_relative_drift"] < 1e-12

@@ -997,9 +997,18 @@ def _lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
     return out
 
 
-def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
+def _flow_from(
+    sim: FlowSimulation, wall: float, stopped: str, revolution: str = "last"
+) -> xr.Dataset:
+    """The flow dataset of a run: the phase averages of its last recorded revolution, or
+    with ``revolution="previous"`` of the one before (to see what the choice of
+    revolution does downstream, e.g. to the mixing); the periodicity attributes compare
+    the two either way."""
     s = sim.settings
-    fill, vel, raw = sim.last.fields()
+    if revolution not in ("last", "previous"):
+        raise ValueError(f"revolution: 'last' or 'previous', not {revolution!r}")
+    recorded = sim.last if revolution == "last" else sim.previous
+    fill, vel, raw = recorded.fields()
     attrs = {
         "solver": "MLS-MPM/APIC, quadratic B-splines, Mohr-Coulomb (blendxr.flow.solver)",
         "solver_cell_m": s.cell,
@@ -1023,17 +1032,19 @@ def _flow_from(sim: FlowSimulation, wall: float, stopped: str) -> xr.Dataset:
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
         "revolutions_turned": sim.revolution(),
-        "samples_per_phase": sim.last.samples.tolist(),
+        "recorded_revolution": revolution,
+        "samples_per_phase": recorded.samples.tolist(),
     }
     if sim.previous.samples.min() > 0:
         fill_p, vel_p, _ = sim.previous.fields()
+        fill_l, vel_l, _ = sim.last.fields()
         if sim.lab_frame or s.rpm == 0:
-            lab_p, lab = vel_p, vel
+            lab_p, lab = vel_p, vel_l
         else:
-            lab_p, lab = (_lab_velocities(sim, v) for v in (vel_p, vel))
-            for name, value in periodicity(vel_p, vel, fill_p, fill).items():
+            lab_p, lab = (_lab_velocities(sim, v) for v in (vel_p, vel_l))
+            for name, value in periodicity(vel_p, vel_l, fill_p, fill_l).items():
                 attrs[f"periodicity_vessel_frame_{name}"] = value
-        for name, value in periodicity(lab_p, lab, fill_p, fill).items():
+        for name, value in periodicity(lab_p, lab, fill_p, fill_l).items():
             attrs[f"periodicity_{name}"] = value
         # the same measure between the two halves of the particles within the last
         # revolution: what sampling noise alone puts into eq. (30). Each half has twice
