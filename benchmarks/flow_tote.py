@@ -1,15 +1,19 @@
 """The Tote blender through the flow solver: periodicity, validity, cost.
 
 Part 1 (periodicity at a coarse cell): the default Tote (DESIGN §7) at 40 % and 60 %
-fill, 10 rpm, turned three revolutions at a 12.5 mm cell with the default stiffness
-scaling; reports the periodicity of eq. (30) between revolutions 2 and 3 (lab-frame
-velocities as the paper's fixed mesh saw them, and the stricter vessel-frame figure),
-the part of it that the sampling noise of the phase averages accounts for (eq. (30)
-between the averages of the even- and odd-numbered particles, over sqrt 2), the deepest
-particle escape over every step, whether the dataset validates, the mixing that
-``bx.mix`` computes on it over five revolutions, and the wall time. What the flow's
-change between revolutions does to that answer: the same mixing on revolution 2's flow
-instead of revolution 3's (the largest relative change of the RSD curve).
+fill, 10 rpm, turned five revolutions at a 12.5 mm cell with the default stiffness
+scaling; reports the periodicity of eq. (30) between every two successive revolutions
+as the paper's Table 3 does (lab-frame velocities as the paper's fixed mesh saw them;
+the issue's figure is revolutions 2 and 3), the stricter vessel-frame figure and the
+part that the sampling noise of the phase averages accounts for (eq. (30) between the
+averages of the even- and odd-numbered particles, over sqrt 2) for the last two, the
+deepest particle escape over every step, whether the dataset validates, the mixing that
+``bx.mix`` computes on the last revolution's flow over five revolutions, and the wall
+time. What the flow's change between revolutions does to that answer: the same mixing
+on the flow of the revolution before (the largest relative change of the RSD curve).
+At 40 % the run is repeated from a start perturbed by 1e-7 m: how far two runs part is
+the yardstick for the change between revolutions (a sensitive, chaotic flow would part
+as much; a deterministic drift would not).
 
 Part 2 (the paper's case): the 40 % Tote at a 7.5 mm cell with the default scaling and
 36 phase bins, run for three revolutions: the wall time of settling plus two
@@ -24,7 +28,7 @@ times as many) unless ``--unscaled`` runs it too.
 
 Run: ``python benchmarks/flow_tote.py [--unscaled] [--skip-periodicity] [--no-lost-contact]
 [--symmetry none]``
-(about 26 minutes on 2 cores by halves; ``--unscaled`` adds about 31). Writes
+(about 40 minutes on 2 cores by halves; ``--unscaled`` adds about 31). Writes
 ``benchmarks/results/flow_tote.{json,md}``.
 """
 
@@ -51,11 +55,18 @@ from _common import (  # noqa: E402
 )
 
 import blendxr as bx  # noqa: E402
-from blendxr.flow.solver import FlowSimulation, _flow_from  # noqa: E402
+from blendxr.flow.solver import (  # noqa: E402
+    FlowSimulation,
+    _flow_from,
+    _lab_velocities,
+    periodicity,
+)
 
 DEFAULT_SCALING = bx.load_scene("tote-40-top-bottom")["solver"]["stiffness_scaling"]
 PERIODICITY_CELL = 0.0125
 MIX_REVOLUTIONS = 5.0
+REVOLUTIONS = 5  # part 1: eq. (30) between every two successive ones, as Table 3
+TWIN_PERTURBATION = 1e-7  # m
 PAPER_CELL = 0.0075
 
 
@@ -107,8 +118,32 @@ def _attrs(flow) -> dict:
     return out
 
 
-def periodicity_case(fraction) -> dict:
-    sim = FlowSimulation(tote(fraction, PERIODICITY_CELL, DEFAULT_SCALING, 3))
+def _lab_last(sim) -> np.ndarray:
+    return _lab_velocities(sim, sim.last.fields()[1])
+
+
+def twin_case(fraction, reference: np.ndarray) -> dict:
+    """The same run from a start perturbed by up to TWIN_PERTURBATION in x and y: how far
+    apart the last revolutions' flows end (sensitivity to the initial state, against
+    which the change between revolutions is to be read)."""
+    sim = FlowSimulation(tote(fraction, PERIODICITY_CELL, DEFAULT_SCALING, REVOLUTIONS))
+    rng = np.random.default_rng(1)
+    sim.particles.x[:, :2] += TWIN_PERTURBATION * rng.uniform(-1.0, 1.0, (sim.particles.count, 2))
+    sim.run(progress=False)
+    twin = _lab_last(sim)
+    fill = sim.last.fields()[0]
+    change = periodicity(reference, twin, fill, fill)
+    return {
+        "perturbation_m": TWIN_PERTURBATION,
+        "eq30_lab": {c: change[c] for c in ("vx", "vy", "vz")},
+        "largest_difference_over_largest_speed": float(
+            np.abs(twin - reference).max() / np.abs(reference).max()
+        ),
+    }
+
+
+def periodicity_case(fraction, twin=False) -> dict:
+    sim = FlowSimulation(tote(fraction, PERIODICITY_CELL, DEFAULT_SCALING, REVOLUTIONS))
     check, deepest = _escape_tracker(1)
     started = time.perf_counter()
     sim.run(progress=False, callback=check)
@@ -121,10 +156,16 @@ def periodicity_case(fraction) -> dict:
     )
     rsd, rsd_before = (m["rsd"].values for m in (mixed, mixed_before))
     a = flow.attrs
-    return {
+    history = {
+        "revolution": [int(r) for r in a["periodicity_history_revolution"]],
+        **{c: [float(x) for x in a[f"periodicity_history_{c}"]] for c in ("vx", "vy", "vz")},
+    }
+    at = history["revolution"].index(3)
+    out = {
         "fill": fraction,
         "cell_m": PERIODICITY_CELL,
         "stiffness_scaling": DEFAULT_SCALING,
+        "revolutions": REVOLUTIONS,
         "particles": a["particles"],
         "particles_solved": a["particles_solved"],
         "steps": a["steps"],
@@ -132,17 +173,24 @@ def periodicity_case(fraction) -> dict:
         "particle_updates_per_s": a["particle_updates_per_s"],
         "deepest_escape_m": deepest[0],
         "valid": True,
+        # the issue's figure: revolutions 2 and 3
+        "periodicity_2_3_lab": {c: history[c][at] for c in ("vx", "vy", "vz")},
+        "periodicity_history_lab": history,
         **_attrs(flow),
+        "current_volume_over_seeded": a["current_volume_over_seeded"],
         "fill_clipped_max": a["fill_clipped_max"],
         "mix_rsd_start_end": [float(rsd[0]), float(rsd[-1])],
         "mix_mass_drift": float(mixed.attrs["mass_a_relative_drift"]),
         # what the flow's change between revolutions does to the answer: the same mixing
-        # run on revolution 2's flow instead of revolution 3's
+        # on the flow of the revolution before the last
         "mix_revolutions": mixed["revolution"].values.tolist(),
         "mix_rsd": rsd.tolist(),
-        "mix_rsd_from_revolution_2": rsd_before.tolist(),
+        "mix_rsd_from_revolution_before": rsd_before.tolist(),
         "mix_rsd_largest_relative_change": float(np.max(np.abs(rsd_before - rsd) / rsd)),
     }
+    if twin:
+        out["twin"] = twin_case(fraction, _lab_last(sim))
+    return out
 
 
 def memory(sim) -> dict:
@@ -244,9 +292,9 @@ def main() -> None:
     FlowSimulation(tote(0.4, 0.03, 100.0, 2)).run(max_steps=20, progress=False)  # compile
     periodic = []
     for fraction in () if args.skip_periodicity else (0.4, 0.6):
-        r = periodicity_case(fraction)
+        r = periodicity_case(fraction, twin=fraction == 0.4)
         periodic.append(r)
-        lab, noise = _triple(r["periodicity_lab"]), _triple(r["periodicity_noise"])
+        lab, noise = _triple(r["periodicity_2_3_lab"]), _triple(r["periodicity_noise"])
         echo(
             f"fill {fraction}: {r['particles']} particles, {r['wall_s']:.0f} s, "
             f"lab {lab}, noise {noise}"
@@ -261,13 +309,14 @@ def main() -> None:
              f"{r['wall_two_revolutions_s'] / 60:.1f} min")  # fmt: skip
 
     text1 = table(
-        ["fill", "cell mm", "particles", "solved", "wall s", "eq. 30 lab x/y/z", "noise part x/y/z",
-         "vessel frame x/y/z", "max sdf m", f"RSD, {MIX_REVOLUTIONS:g} rev",
-         "RSD from rev 2: largest change"],
+        ["fill", "cell mm", "particles", "solved", "wall s", "eq. 30 lab, revs 2-3 x/y/z",
+         "noise part x/y/z", "vessel frame, last two x/y/z", "max sdf m",
+         f"RSD, {MIX_REVOLUTIONS:g} rev", "RSD on the revolution before: largest change"],
         [
             [
                 f"{r['fill']:.0%}", f"{r['cell_m'] * 1000:g}", r["particles"],
-                r["particles_solved"], f"{r['wall_s']:.0f}", _triple(r["periodicity_lab"]),
+                r["particles_solved"], f"{r['wall_s']:.0f}",
+                _triple(r.get("periodicity_2_3_lab", r["periodicity_lab"])),
                 _triple(r["periodicity_noise"]), _triple(r["periodicity_vessel_frame"]),
                 f"{r['deepest_escape_m']:.1e}",
                 f"{r['mix_rsd_start_end'][0]:.3f} -> {r['mix_rsd_start_end'][1]:.3f}"
@@ -279,6 +328,28 @@ def main() -> None:
                                  p["steps_two_revolutions"]]
         ],
     )  # fmt: skip
+    turned = periodic[0]["periodicity_history_lab"]["revolution"] if periodic else []
+    pairs = [f"{j - 1}-{j}" for j in turned]
+    text4 = table(
+        ["fill"] + [f"revs {pair} x/y/z" for pair in pairs] + ["current volume / seeded"],
+        [
+            [f"{r['fill']:.0%}"]
+            + [
+                _triple({c: r["periodicity_history_lab"][c][i] for c in ("vx", "vy", "vz")})
+                for i in range(len(pairs))
+            ]
+            + [f"{r['current_volume_over_seeded']:.3f}"]
+            for r in periodic
+        ],
+    )  # fmt: skip
+    twins = [r for r in periodic if "twin" in r]
+    text5 = "\n".join(
+        f"{r['fill']:.0%} fill, start perturbed by up to {r['twin']['perturbation_m']:g} m: "
+        f"eq. (30) between the two runs' last revolutions {_triple(r['twin']['eq30_lab'])} "
+        f"(lab x/y/z), largest velocity difference "
+        f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed."
+        for r in twins
+    )
     text3 = table(
         ["E scaling", "particles MiB", "B/particle", "grid MiB", "phase accumulators MiB"],
         [
@@ -309,6 +380,9 @@ def main() -> None:
     echo()
     echo(text1)
     echo()
+    echo(text4)
+    echo(text5)
+    echo()
     echo(text2)
     echo()
     echo(text3)
@@ -320,15 +394,23 @@ def main() -> None:
         "those the solver computed, the half z >= 0 with a mirror plane when symmetric; "
         "M updates/s counts solved particles).\n\n"
         "Periodicity (eq. 30) between revolutions 2 and 3, Tote at 10 rpm, "
-        f"E/{DEFAULT_SCALING:g}; 12 phase bins at 12.5 mm, 36 at 7.5 mm. Noise part: eq. "
-        "(30) between the phase averages of the even- and odd-numbered particles of "
-        "revolution 3, over sqrt 2: what the sampling noise of the averages alone puts "
-        "into the figure beside it. Max sdf: the deepest particle escape (every step at "
-        "12.5 mm, every 50 at 7.5 mm; negative: none left the vessel); RSD from `bx.mix` "
+        f"E/{DEFAULT_SCALING:g}; 12 phase bins at 12.5 mm (five revolutions turned), 36 at "
+        "7.5 mm (three). Noise part: eq. (30) between the phase averages of the even- and "
+        "odd-numbered particles of the last revolution, over sqrt 2: what the sampling "
+        "noise of the averages alone puts into eq. (30). Max sdf: the deepest particle "
+        "escape (every step at 12.5 mm, every 50 at 7.5 mm; negative: none left the "
+        "vessel); RSD from `bx.mix` "
         f"on the flow over {MIX_REVOLUTIONS:g} revolutions (top-bottom loading, 50 cells, "
         "output every half revolution), and the largest relative change of that RSD "
-        "curve when revolution 2's flow is repeated instead of revolution 3's.\n\n"
+        "curve when the flow of the revolution before the last is repeated instead of "
+        "the last's. Noise part and vessel frame: between the last two revolutions.\n\n"
         + text1
+        + "\n\nEq. (30) between every two successive revolutions (lab frame, as the "
+        "paper's Table 3: 3.95 / 2.30 / 2.91 %, 0.56 / 0.38 / 1.18 %, 1.85 / 3.03 / 2.53 % "
+        "for revolutions 1-2, 2-3, 3-4), and the bed's current volume (J times the seeded "
+        "volumes) at the end.\n\n"
+        + text4
+        + ("\n\nSensitivity to the initial state: " + text5 if text5 else "")
         + f"\n\nCost of the paper's case: 40 % fill, {PAPER_CELL * 1000:g} mm cell, settling "
         "plus two revolutions; ms/step over revolution 2.\n\n" + text2 + "\n\n"
         "Memory of the paper's case (the solved particles; the grid with the mirror "

@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 
 import blendxr as bx
-from blendxr.flow.solver import FlowBlowUpError, FlowSimulation, PhaseAverager, solve_flow
+from blendxr.flow.solver import (
+    FlowBlowUpError,
+    FlowSimulation,
+    PhaseAverager,
+    _flow_from,
+    revolution_change,
+    solve_flow,
+)
 from blendxr.scene import SceneError
 
 G = 9.81
@@ -152,6 +159,29 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
     assert second.steps == whole.steps == 120
     np.testing.assert_array_equal(second.particles.x, whole.particles.x)
     np.testing.assert_array_equal(second.particles.stress, whole.particles.stress)
+
+
+def test_every_revolution_is_compared_with_the_one_before(tmp_path):
+    # eq. (30) between each two successive revolutions, as the paper's Table 3 gives it:
+    # the entry of revolution 2 compares the averages of revolutions 1 and 2 as they
+    # stood when revolution 2 ended; the last entry is the dataset's periodicity
+    sim = FlowSimulation(drum_scene(0.4, revolutions=3))
+    sim.run(until=sim.settings.settle_time + 2 * sim.period, progress=False)
+    assert sim.recording == 2 and sim.history == []
+    expected = revolution_change(sim, sim.previous, sim.last)
+    sim.run(progress=False)
+    flow = _flow_from(sim, 0.0, "time")
+    np.testing.assert_array_equal(flow.attrs["periodicity_history_revolution"], [2, 3])
+    for c in ("vx", "vy"):
+        assert flow.attrs[f"periodicity_history_{c}"][0] == expected[c]
+        assert flow.attrs[f"periodicity_history_{c}"][-1] == flow.attrs[f"periodicity_{c}"]
+    assert expected["vx"] != flow.attrs["periodicity_vx"]
+    # a resumed run carries the history on
+    path = tmp_path / "flow.ckpt.nc"
+    sim.save_checkpoint(path)
+    again = FlowSimulation(drum_scene(0.4, revolutions=3))
+    again.load_checkpoint(path)
+    assert again.periodicity_history() == sim.periodicity_history()
 
 
 def test_checkpoint_of_another_scene_is_refused(tmp_path):

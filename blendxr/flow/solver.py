@@ -419,6 +419,25 @@ class PhaseAverager:
                     self.vol[half, k], self.mom[half, k])  # fmt: skip
         self.samples[k] += 1
 
+    def take(self, other: PhaseAverager) -> None:
+        """Hold ``other``'s averages (its halves summed when this one has none)."""
+        if self.vol.shape[0] == other.vol.shape[0]:
+            self.vol[...] = other.vol
+            self.mom[...] = other.mom
+        else:
+            self.vol[0] = other.vol.sum(axis=0)
+            self.mom[0] = other.mom.sum(axis=0)
+        self.samples[...] = other.samples
+
+    def clear(self) -> None:
+        self.vol[...] = 0.0
+        self.mom[...] = 0.0
+        self.samples[...] = 0
+
+    def complete(self) -> bool:
+        """Whether every phase bin holds samples."""
+        return bool(self.samples.min() > 0)
+
     def fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(fill, velocity (n, ..., d), raw fill before clipping) of every bin."""
         return self._fields(self.vol.sum(axis=0), self.mom.sum(axis=0))
@@ -556,6 +575,11 @@ class FlowSimulation:
         grid = (self.out_origin, self.out_shape, s.output_cell, s.phases)
         self.last = PhaseAverager(*grid, halves=True, mirror=self.mirror)
         self.previous = PhaseAverager(*grid, mirror=self.mirror)
+        # rotating scenes record every revolution in turn, keeping the last two: the
+        # revolution ``last`` holds (0: none yet) and eq. (30) between each completed
+        # revolution and the one before, as (revolution, vx, vy[, vz]) on lab velocities
+        self.recording = 0
+        self.history: list[tuple] = []
         # fixed at the start (material at rest), so that a resumed run samples the same steps
         self.sample_every = self.samples_every()
         self._check_range()
@@ -742,12 +766,11 @@ class FlowSimulation:
             return s.settle_time + s.revolutions * self.period
         return s.settle_time + s.duration
 
-    def _window(self) -> tuple[float, float, float, float]:
-        """(start of the previous recorded window, start of the last, end) in seconds."""
+    def _window(self) -> tuple[float, float, float]:
+        """(start of the previous averaging window, start of the last, end) in seconds
+        of a non-rotating scene (rotating ones record revolution by revolution)."""
         s = self.settings
         end = self.end_time()
-        if s.rpm > 0:
-            return end - 2 * self.period, end - self.period, end
         w = s.average_window or 0.25 * s.duration
         return end - 2 * w, end - w, end
 
@@ -762,15 +785,22 @@ class FlowSimulation:
         measured) where the real material, with a dilation angle of 0.1 degrees, keeps
         its volume.
         """
-        start_prev, start_last, end = self._window()
-        if self.t < start_prev:
-            return
-        target = self.last if self.t >= start_last else self.previous
-        p = self.particles
-        if self.settings.rpm > 0:
-            phase = (self.t - self.settings.settle_time) / self.period % 1.0
+        s = self.settings
+        if s.rpm > 0:
+            turning = self.turning_revolution()
+            if turning < 1:
+                return
+            if turning != self.recording:
+                self._roll(turning)
+            target = self.last
+            phase = (self.t - s.settle_time) / self.period % 1.0
         else:
+            start_prev, start_last, _ = self._window()
+            if self.t < start_prev:
+                return
+            target = self.last if self.t >= start_last else self.previous
             phase = 0.0
+        p = self.particles
         if self.lab_frame:
             theta = self.omega * (self.t - self.settings.settle_time)
             r = _rotation(theta, self.ndim)
@@ -781,6 +811,33 @@ class FlowSimulation:
             target.add(0, np.ascontiguousarray(x), np.ascontiguousarray(vel @ r.T), p.vol0)
         else:
             target.add(target.bin_of(phase), p.x, p.v, p.vol0)
+
+    def turning_revolution(self) -> int:
+        """The revolution being turned (1 from the end of settling; a sample at a
+        revolution's end belongs to it), 0 while settling."""
+        turned = (self.t - self.settings.settle_time) / self.period
+        return max(0, math.ceil(turned - 1e-9))
+
+    def _roll(self, turning: int) -> None:
+        """Start recording revolution ``turning``: eq. (30) between the revolution just
+        completed and the one before goes into the history, then the last becomes the
+        previous."""
+        if self.recording > 0 and self.previous.complete() and self.last.complete():
+            change = revolution_change(self, self.previous, self.last)
+            self.history.append((self.recording, *(change[f"v{c}"] for c in "xyz"[: self.ndim])))
+        self.previous.take(self.last)
+        self.last.clear()
+        self.recording = turning
+
+    def periodicity_history(self) -> list[tuple]:
+        """Eq. (30) between every two successive revolutions recorded, the last two
+        included: ``(revolution j + 1, vx, vy[, vz])`` on lab-frame velocities, as the
+        paper's Table 3 gives it."""
+        rows = list(self.history)
+        if self.recording > 0 and self.previous.complete() and self.last.complete():
+            change = revolution_change(self, self.previous, self.last)
+            rows.append((self.recording, *(change[f"v{c}"] for c in "xyz"[: self.ndim])))
+        return rows
 
     # --- checkpoints ------------------------------------------------------------------
     def fingerprint(self) -> str:
@@ -802,6 +859,8 @@ class FlowSimulation:
             "reflected": self.reflected,
             "particle_updates": self.particle_updates,
             "wall_seconds": self.wall_seconds,
+            "recording": self.recording,
+            "history": [list(row) for row in self.history],
             "fingerprint": self.fingerprint(),
             "blendxr_version": __version__,
         }
@@ -826,6 +885,8 @@ class FlowSimulation:
         self.reflected = int(meta.get("reflected", 0))
         self.particle_updates = int(meta["particle_updates"])
         self.wall_seconds = float(meta["wall_seconds"])
+        self.recording = int(meta.get("recording", 0))
+        self.history = [tuple(row) for row in meta.get("history", [])]
 
     # --- driving ----------------------------------------------------------------------
     def samples_every(self) -> int:
@@ -997,6 +1058,16 @@ def _lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
     return out
 
 
+def revolution_change(sim: FlowSimulation, before: PhaseAverager, after: PhaseAverager):
+    """Eq. (30) (:func:`periodicity`) between two recorded revolutions of a run, on
+    lab-frame velocities (the frame of the paper's fixed mesh)."""
+    fill_b, vel_b, _ = before.fields()
+    fill_a, vel_a, _ = after.fields()
+    if not (sim.lab_frame or sim.settings.rpm == 0):
+        vel_b, vel_a = _lab_velocities(sim, vel_b), _lab_velocities(sim, vel_a)
+    return periodicity(vel_b, vel_a, fill_b, fill_a)
+
+
 def _flow_from(
     sim: FlowSimulation, wall: float, stopped: str, revolution: str = "last"
 ) -> xr.Dataset:
@@ -1035,16 +1106,13 @@ def _flow_from(
         "recorded_revolution": revolution,
         "samples_per_phase": recorded.samples.tolist(),
     }
-    if sim.previous.samples.min() > 0:
-        fill_p, vel_p, _ = sim.previous.fields()
-        fill_l, vel_l, _ = sim.last.fields()
-        if sim.lab_frame or s.rpm == 0:
-            lab_p, lab = vel_p, vel_l
-        else:
-            lab_p, lab = (_lab_velocities(sim, v) for v in (vel_p, vel_l))
+    if sim.previous.complete() and sim.last.complete():
+        if not (sim.lab_frame or s.rpm == 0):
+            fill_p, vel_p, _ = sim.previous.fields()
+            fill_l, vel_l, _ = sim.last.fields()
             for name, value in periodicity(vel_p, vel_l, fill_p, fill_l).items():
                 attrs[f"periodicity_vessel_frame_{name}"] = value
-        for name, value in periodicity(lab_p, lab, fill_p, fill_l).items():
+        for name, value in revolution_change(sim, sim.previous, sim.last).items():
             attrs[f"periodicity_{name}"] = value
         # the same measure between the two halves of the particles within the last
         # revolution: what sampling noise alone puts into eq. (30). Each half has twice
@@ -1064,6 +1132,17 @@ def _flow_from(
             "*_norm: sum |dv| / sum |v| over the same cells; periodicity_noise_*: the "
             "part sampling noise alone accounts for, eq. (30) between the averages of the "
             "even- and odd-numbered particles of the last revolution, over sqrt(2)"
+        )
+    history = sim.periodicity_history() if s.rpm > 0 else []
+    if history:
+        rows = np.asarray(history, float)
+        attrs["periodicity_history_revolution"] = rows[:, 0].astype(np.int64)
+        for a, c in enumerate("xyz"[: sim.ndim]):
+            attrs[f"periodicity_history_v{c}"] = rows[:, a + 1]
+        attrs["periodicity_history_definition"] = (
+            "eq. (30) on lab-frame velocities as periodicity_v*, between each recorded "
+            "revolution j + 1 = periodicity_history_revolution and the one before "
+            "(the paper's Table 3); the last entry is periodicity_v*"
         )
     axes = dict(zip("xyz", sim.out_axes, strict=False))
     phases = np.arange(s.phases) / s.phases
