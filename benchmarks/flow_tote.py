@@ -345,7 +345,9 @@ def main() -> None:
     twins = [r for r in periodic if "twin" in r]
     text5 = "\n".join(
         f"{r['fill']:.0%} fill, start perturbed by up to {r['twin']['perturbation_m']:g} m: "
-        f"eq. (30) between the two runs' last revolutions {_triple(r['twin']['eq30_lab'])} "
+        "eq. (30) between the two runs' last revolutions "
+        + " / ".join(f"{r['twin']['eq30_lab'][c]:.2%}" for c in ("vx", "vy", "vz"))
+        + " "
         f"(lab x/y/z), largest velocity difference "
         f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed."
         for r in twins
