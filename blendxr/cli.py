@@ -121,6 +121,19 @@ def _cmd_flow(args) -> int:
                 if f"periodicity_{c}" in a
             )
         )
+    if "periodicity_history_revolution" in a:
+        import numpy as np
+
+        parts = "xyz"[: 3 if "periodicity_history_vz" in a else 2]
+        columns = [np.atleast_1d(a[f"periodicity_history_v{c}"]) for c in parts]
+        turned = np.atleast_1d(a["periodicity_history_revolution"])
+        print(
+            f"eq. 30 by revolution ({' / '.join(parts)}): "
+            + "; ".join(
+                f"{j - 1}-{j} " + " / ".join(f"{v:.1%}" for v in row)
+                for j, row in zip(turned, zip(*columns, strict=True), strict=True)
+            )
+        )
     if particles is not None:
         from .io import _atomic_path
 

@@ -13,7 +13,9 @@ the walls stand still and gravity turns backwards once per revolution:
 4. **Average** particle velocity and volume into ``flow.phases`` phase bins of the last
    revolution, on the output grid of cell ``flow.cell``: the flow dataset of DESIGN §3.
    Drums are axisymmetric: their flow is averaged in the lab frame into one phase.
-   The previous revolution is averaged too, for the periodicity of eq. (30).
+   Every revolution is averaged in turn and the last two are kept: eq. (30) between
+   each revolution and the one before goes into ``periodicity_history_*`` (the
+   paper's Table 3), and the last pair into ``periodicity_*``.
 
 Non-rotating scenes (``rpm = 0``) run for ``operation.duration`` and average over the
 final ``solver.average_window``.
