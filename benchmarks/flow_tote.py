@@ -118,11 +118,13 @@ def _attrs(flow) -> dict:
     return out
 
 
-def _lab_last(sim) -> np.ndarray:
-    return _lab_velocities(sim, sim.last.fields()[1])
+def _last_revolution(sim) -> tuple[np.ndarray, np.ndarray]:
+    """(fill, lab-frame velocities) of the last recorded revolution."""
+    fill, vel, _ = sim.last.fields()
+    return fill, _lab_velocities(sim, vel)
 
 
-def twin_case(fraction, reference: np.ndarray) -> dict:
+def twin_case(fraction, reference: tuple[np.ndarray, np.ndarray]) -> dict:
     """The same run from a start perturbed by up to TWIN_PERTURBATION in x and y: how far
     apart the last revolutions' flows end (sensitivity to the initial state, against
     which the change between revolutions is to be read)."""
@@ -130,14 +132,18 @@ def twin_case(fraction, reference: np.ndarray) -> dict:
     rng = np.random.default_rng(1)
     sim.particles.x[:, :2] += TWIN_PERTURBATION * rng.uniform(-1.0, 1.0, (sim.particles.count, 2))
     sim.run(progress=False)
-    twin = _lab_last(sim)
-    fill = sim.last.fields()[0]
-    change = periodicity(reference, twin, fill, fill)
+    fill, twin = _last_revolution(sim)
+    fill_ref, ref = reference
+    change = periodicity(ref, twin, fill_ref, fill)
+    material = (fill_ref > 0.5) & (fill > 0.5)  # eq. (30)'s cells
     return {
         "perturbation_m": TWIN_PERTURBATION,
         "eq30_lab": {c: change[c] for c in ("vx", "vy", "vz")},
+        "eq30_lab_norm": {c: change[f"{c}_norm"] for c in ("vx", "vy", "vz")},
+        # over the cells holding material in both; the bed's edge cells, a few samples
+        # each, are left out as eq. (30) leaves them out
         "largest_difference_over_largest_speed": float(
-            np.abs(twin - reference).max() / np.abs(reference).max()
+            np.abs(twin - ref)[material].max() / np.abs(ref)[material].max()
         ),
     }
 
@@ -189,7 +195,7 @@ def periodicity_case(fraction, twin=False) -> dict:
         "mix_rsd_largest_relative_change": float(np.max(np.abs(rsd_before - rsd) / rsd)),
     }
     if twin:
-        out["twin"] = twin_case(fraction, _lab_last(sim))
+        out["twin"] = twin_case(fraction, _last_revolution(sim))
     return out
 
 
@@ -349,7 +355,8 @@ def main() -> None:
         + " / ".join(f"{r['twin']['eq30_lab'][c]:.2%}" for c in ("vx", "vy", "vz"))
         + " "
         f"(lab x/y/z), largest velocity difference "
-        f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed."
+        f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed "
+        "(cells with fill > 0.5 in both)."
         for r in twins
     )
     text3 = table(
