@@ -45,6 +45,35 @@ def _mix_overrides(args) -> dict:
     return overrides
 
 
+def _periodicity_lines(a) -> list[str]:
+    """How periodic a solved flow is (eq. 30), from its attributes: the last two
+    revolutions, and every two successive ones where the run recorded them."""
+    lines = []
+    if "periodicity_vx_norm" in a:
+        lines.append(
+            "periodicity between the last two revolutions (eq. 30): "
+            + ", ".join(
+                f"{c} {a[f'periodicity_{c}']:.1%}"
+                for c in ("vx", "vy", "vz")
+                if f"periodicity_{c}" in a
+            )
+        )
+    if "periodicity_history_revolution" in a:
+        import numpy as np
+
+        parts = "xyz"[: 3 if "periodicity_history_vz" in a else 2]
+        columns = [np.atleast_1d(a[f"periodicity_history_v{c}"]) for c in parts]
+        turned = np.atleast_1d(a["periodicity_history_revolution"])
+        lines.append(
+            f"eq. 30 by revolution ({' / '.join(parts)}): "
+            + "; ".join(
+                f"{j - 1}-{j} " + " / ".join(f"{v:.1%}" for v in row)
+                for j, row in zip(turned, zip(*columns, strict=True), strict=True)
+            )
+        )
+    return lines
+
+
 def _summary(mixed) -> str:
     a = mixed.attrs
     rsd = mixed["rsd"].values
@@ -81,6 +110,8 @@ def _cmd_mix(args) -> int:
     if args.save_flow:
         write_dataset(flow, out / "flow.nc")
     save_report_figure(mixed, out / "mixing.png")
+    for line in _periodicity_lines(flow.attrs):
+        print(line)
     print(_summary(mixed))
     print(f"wrote {out / 'mixing.nc'} and {out / 'mixing.png'}")
     return 0
@@ -112,28 +143,8 @@ def _cmd_flow(args) -> int:
         f"{a['particles']} particles, {a['steps']} steps, {a['wall_time_s']:.1f} s wall, "
         f"{a['particle_updates_per_s'] / 1e6:.2f} M particle updates/s"
     )
-    if "periodicity_vx_norm" in a:
-        print(
-            "periodicity between the last two revolutions (eq. 30): "
-            + ", ".join(
-                f"{c} {a[f'periodicity_{c}']:.1%}"
-                for c in ("vx", "vy", "vz")
-                if f"periodicity_{c}" in a
-            )
-        )
-    if "periodicity_history_revolution" in a:
-        import numpy as np
-
-        parts = "xyz"[: 3 if "periodicity_history_vz" in a else 2]
-        columns = [np.atleast_1d(a[f"periodicity_history_v{c}"]) for c in parts]
-        turned = np.atleast_1d(a["periodicity_history_revolution"])
-        print(
-            f"eq. 30 by revolution ({' / '.join(parts)}): "
-            + "; ".join(
-                f"{j - 1}-{j} " + " / ".join(f"{v:.1%}" for v in row)
-                for j, row in zip(turned, zip(*columns, strict=True), strict=True)
-            )
-        )
+    for line in _periodicity_lines(a):
+        print(line)
     if particles is not None:
         from .io import _atomic_path
 
