@@ -353,9 +353,8 @@ def main() -> None:
         f"{r['fill']:.0%} fill, start perturbed by up to {r['twin']['perturbation_m']:g} m: "
         "eq. (30) between the two runs' last revolutions "
         + " / ".join(f"{r['twin']['eq30_lab'][c]:.2%}" for c in ("vx", "vy", "vz"))
-        + " "
-        f"(lab x/y/z), largest velocity difference "
-        f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed "
+        + " (lab x/y/z), largest velocity difference "
+        + f"{r['twin']['largest_difference_over_largest_speed']:.2%} of the largest speed "
         "(cells with fill > 0.5 in both)."
         for r in twins
     )

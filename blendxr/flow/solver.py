@@ -824,21 +824,30 @@ class FlowSimulation:
         """Start recording revolution ``turning``: eq. (30) between the revolution just
         completed and the one before goes into the history, then the last becomes the
         previous."""
-        if self.recording > 0 and self.previous.complete() and self.last.complete():
+        if self.recording > 0 and self.both_recorded():
             change = revolution_change(self, self.previous, self.last)
-            self.history.append((self.recording, *(change[f"v{c}"] for c in "xyz"[: self.ndim])))
+            self.history.append(self._history_row(change))
         self.previous.take(self.last)
         self.last.clear()
         self.recording = turning
 
-    def periodicity_history(self) -> list[tuple]:
+    def both_recorded(self) -> bool:
+        """Whether the last two averaging windows (revolutions) are both complete."""
+        return self.previous.complete() and self.last.complete()
+
+    def _history_row(self, change: dict) -> tuple:
+        return (self.recording, *(change[f"v{c}"] for c in "xyz"[: self.ndim]))
+
+    def periodicity_history(self, change: dict | None = None) -> list[tuple]:
         """Eq. (30) between every two successive revolutions recorded, the last two
         included: ``(revolution j + 1, vx, vy[, vz])`` on lab-frame velocities, as the
-        paper's Table 3 gives it."""
+        paper's Table 3 gives it. ``change``: the last two's
+        :func:`revolution_change`, when the caller has it already."""
         rows = list(self.history)
-        if self.recording > 0 and self.previous.complete() and self.last.complete():
-            change = revolution_change(self, self.previous, self.last)
-            rows.append((self.recording, *(change[f"v{c}"] for c in "xyz"[: self.ndim])))
+        if self.recording > 0 and self.both_recorded():
+            if change is None:
+                change = revolution_change(self, self.previous, self.last)
+            rows.append(self._history_row(change))
         return rows
 
     # --- checkpoints ------------------------------------------------------------------
@@ -1060,14 +1069,22 @@ def _lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
     return out
 
 
-def revolution_change(sim: FlowSimulation, before: PhaseAverager, after: PhaseAverager):
+def revolution_change(
+    sim: FlowSimulation, before: PhaseAverager, after: PhaseAverager, *, vessel_frame=False
+) -> dict:
     """Eq. (30) (:func:`periodicity`) between two recorded revolutions of a run, on
-    lab-frame velocities (the frame of the paper's fixed mesh)."""
+    lab-frame velocities (the frame of the paper's fixed mesh); with ``vessel_frame``
+    also on the stored vessel-frame ones of a rotating vessel, as ``vessel_frame_*``
+    (stricter: they lack the rigid rotation)."""
     fill_b, vel_b, _ = before.fields()
     fill_a, vel_a, _ = after.fields()
+    out = {}
     if not (sim.lab_frame or sim.settings.rpm == 0):
+        if vessel_frame:
+            vessel = periodicity(vel_b, vel_a, fill_b, fill_a)
+            out.update({f"vessel_frame_{name}": value for name, value in vessel.items()})
         vel_b, vel_a = _lab_velocities(sim, vel_b), _lab_velocities(sim, vel_a)
-    return periodicity(vel_b, vel_a, fill_b, fill_a)
+    return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
 def _flow_from(
@@ -1108,13 +1125,10 @@ def _flow_from(
         "recorded_revolution": revolution,
         "samples_per_phase": recorded.samples.tolist(),
     }
-    if sim.previous.complete() and sim.last.complete():
-        if not (sim.lab_frame or s.rpm == 0):
-            fill_p, vel_p, _ = sim.previous.fields()
-            fill_l, vel_l, _ = sim.last.fields()
-            for name, value in periodicity(vel_p, vel_l, fill_p, fill_l).items():
-                attrs[f"periodicity_vessel_frame_{name}"] = value
-        for name, value in revolution_change(sim, sim.previous, sim.last).items():
+    change = None
+    if sim.both_recorded():
+        change = revolution_change(sim, sim.previous, sim.last, vessel_frame=True)
+        for name, value in change.items():
             attrs[f"periodicity_{name}"] = value
         # the same measure between the two halves of the particles within the last
         # revolution: what sampling noise alone puts into eq. (30). Each half has twice
@@ -1135,7 +1149,7 @@ def _flow_from(
             "part sampling noise alone accounts for, eq. (30) between the averages of the "
             "even- and odd-numbered particles of the last revolution, over sqrt(2)"
         )
-    history = sim.periodicity_history() if s.rpm > 0 else []
+    history = sim.periodicity_history(change) if s.rpm > 0 else []
     if history:
         rows = np.asarray(history, float)
         attrs["periodicity_history_revolution"] = rows[:, 0].astype(np.int64)
