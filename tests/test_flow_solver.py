@@ -18,6 +18,7 @@ from blendxr.flow.solver import (
     FlowSimulation,
     PhaseAverager,
     _flow_from,
+    coarsen_fields,
     revolution_change,
     solve_flow,
 )
@@ -182,6 +183,48 @@ def test_every_revolution_is_compared_with_the_one_before(tmp_path):
     again = FlowSimulation(drum_scene(0.4, revolutions=3))
     again.load_checkpoint(path)
     assert again.periodicity_history() == sim.periodicity_history()
+
+
+@pytest.mark.parametrize("cells", [(7, 5), (6, 4, 5)])
+@pytest.mark.parametrize("factor", [1, 2, 3])
+def test_coarsened_fields_keep_material_and_momentum_and_match_block_sums(cells, factor):
+    rng = np.random.default_rng(3)
+    d = len(cells)
+    fill = rng.uniform(0.0, 1.0, (2, *cells)) * (rng.uniform(size=(2, *cells)) > 0.3)
+    vel = rng.normal(size=(2, *cells, d))
+    coarse_fill, coarse_vel = coarsen_fields(fill, vel, factor)
+    blocks = tuple(-(-n // factor) for n in cells)  # upper ends padded, nothing dropped
+    assert coarse_fill.shape == (2, *blocks)
+    # conservation: material volume and its momentum, per phase
+    np.testing.assert_allclose(
+        coarse_fill.sum(axis=tuple(range(1, d + 1))) * factor**d,
+        fill.sum(axis=tuple(range(1, d + 1))),
+        rtol=1e-13,
+    )
+    np.testing.assert_allclose(
+        (coarse_vel * coarse_fill[..., None]).sum(axis=tuple(range(1, d + 1))) * factor**d,
+        (vel * fill[..., None]).sum(axis=tuple(range(1, d + 1))),
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    # each block, by a plain loop over its cells
+    for block in np.ndindex(*blocks):
+        sl = tuple(slice(b * factor, (b + 1) * factor) for b in block)
+        volume = fill[(slice(None), *sl)].reshape(2, -1).sum(axis=1)
+        flux = (vel * fill[..., None])[(slice(None), *sl)].reshape(2, -1, d).sum(axis=1)
+        np.testing.assert_allclose(coarse_fill[(slice(None), *block)], volume / factor**d)
+        want = np.where(volume[:, None] > 0, flux / np.where(volume > 0, volume, 1)[:, None], 0)
+        np.testing.assert_allclose(coarse_vel[(slice(None), *block)], want, atol=1e-14)
+    if factor == 1:
+        np.testing.assert_array_equal(coarse_fill, fill)
+
+
+def test_coarsening_refuses_a_bad_factor_or_shape():
+    fill, vel = np.ones((1, 4, 4)), np.zeros((1, 4, 4, 2))
+    with pytest.raises(ValueError, match="factor"):
+        coarsen_fields(fill, vel, 0)
+    with pytest.raises(ValueError, match="expected"):
+        coarsen_fields(fill, vel[..., :1], 2)
 
 
 def test_checkpoint_of_another_scene_is_refused(tmp_path):
