@@ -309,6 +309,11 @@ def _to_builtin(value):
     raise TypeError(f"cannot serialise {type(value).__name__}")
 
 
+def percent_xyz(d: dict) -> str:
+    """``"x% / y% / z%"`` of a dict with the keys vx, vy, vz (eq. (30) figures)."""
+    return " / ".join(f"{d[c]:.1%}" for c in ("vx", "vy", "vz"))
+
+
 def table(headers: list[str], rows: list[list], align: str | None = None) -> str:
     """A Markdown table (also readable as plain text)."""
     cells = [[str(h) for h in headers]] + [[_fmt(v) for v in row] for row in rows]

@@ -48,6 +48,7 @@ from _common import (  # noqa: E402
     echo,
     machine,
     machine_line,
+    percent_xyz,
     table,
     wait_for_quiet,
     write_atomic,
@@ -272,10 +273,6 @@ def unscaled_estimate(scaled: dict) -> dict:
     }
 
 
-def _triple(d: dict) -> str:
-    return " / ".join(f"{d[c]:.1%}" for c in ("vx", "vy", "vz"))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--unscaled", action="store_true", help="also run the unscaled case")
@@ -300,7 +297,7 @@ def main() -> None:
     for fraction in () if args.skip_periodicity else (0.4, 0.6):
         r = periodicity_case(fraction, twin=fraction == 0.4)
         periodic.append(r)
-        lab, noise = _triple(r["periodicity_2_3_lab"]), _triple(r["periodicity_noise"])
+        lab, noise = percent_xyz(r["periodicity_2_3_lab"]), percent_xyz(r["periodicity_noise"])
         echo(
             f"fill {fraction}: {r['particles']} particles, {r['wall_s']:.0f} s, "
             f"lab {lab}, noise {noise}"
@@ -322,8 +319,8 @@ def main() -> None:
             [
                 f"{r['fill']:.0%}", f"{r['cell_m'] * 1000:g}", r["particles"],
                 r["particles_solved"], f"{r['wall_s']:.0f}",
-                _triple(r.get("periodicity_2_3_lab", r["periodicity_lab"])),
-                _triple(r["periodicity_noise"]), _triple(r["periodicity_vessel_frame"]),
+                percent_xyz(r.get("periodicity_2_3_lab", r["periodicity_lab"])),
+                percent_xyz(r["periodicity_noise"]), percent_xyz(r["periodicity_vessel_frame"]),
                 f"{r['deepest_escape_m']:.1e}",
                 f"{r['mix_rsd_start_end'][0]:.3f} -> {r['mix_rsd_start_end'][1]:.3f}"
                 if "mix_rsd_start_end" in r else "",
@@ -341,7 +338,7 @@ def main() -> None:
         [
             [f"{r['fill']:.0%}"]
             + [
-                _triple({c: r["periodicity_history_lab"][c][i] for c in ("vx", "vy", "vz")})
+                percent_xyz({c: r["periodicity_history_lab"][c][i] for c in ("vx", "vy", "vz")})
                 for i in range(len(pairs))
             ]
             + [f"{r['current_volume_over_seeded']:.3f}"]

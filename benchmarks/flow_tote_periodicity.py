@@ -35,11 +35,13 @@ import fcntl  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 
+import flow_tote  # noqa: E402
 from _common import (  # noqa: E402
     RESULTS,
     echo,
     machine,
     machine_line,
+    percent_xyz,
     table,
     write_atomic,
     write_json,
@@ -69,20 +71,11 @@ CASES = {
 
 
 def scene(scaling: float, per_cell: int) -> dict:
-    return {
-        "name": "tote-40",
-        "vessel": {"kind": "tote", "ndim": 3},
-        "operation": {"rpm": 10.0},
-        "fill": {"fraction": FILL},
-        "flow": {"cell": CELL, "phases": PHASES},
-        "solver": {
-            "stiffness_scaling": scaling,
-            "particles_per_cell": per_cell,
-            "settle_time": 0.5,
-            "revolutions": REVOLUTIONS,
-            "checkpoint_every": 1e9,
-        },
-    }
+    """flow_tote's Tote scene (its solver defaults) with ``per_cell`` particles per
+    cell and axis."""
+    out = flow_tote.tote(FILL, CELL, scaling, REVOLUTIONS, phases=PHASES)
+    out["solver"]["particles_per_cell"] = per_cell
+    return out
 
 
 def _pick(change: dict, suffix: str = "") -> dict:
@@ -126,10 +119,6 @@ def run_case(name: str) -> dict:
     }
 
 
-def _triple(d: dict) -> str:
-    return " / ".join(f"{d[c]:.1%}" for c in COMPONENTS)
-
-
 def report(results: dict, info: dict) -> str:
     order = [c for c in CASES if c in results]
     rows = []
@@ -139,8 +128,8 @@ def report(results: dict, info: dict) -> str:
         rows.append([
             name, f"1/{r['stiffness_scaling']:g}", r["particles_per_cell"],
             r["particles_solved"], f"{r['wall_s']:.0f}", r["threads"],
-            _triple(r["eq30_lab_2_3"]), *(_triple(by[str(f)]["eq30"]) for f in SCALES),
-            _triple(r["noise_part_vessel"]), f"{r['current_volume_over_seeded']:.3f}",
+            percent_xyz(r["eq30_lab_2_3"]), *(percent_xyz(by[str(f)]["eq30"]) for f in SCALES),
+            percent_xyz(r["noise_part_vessel"]), f"{r['current_volume_over_seeded']:.3f}",
         ])  # fmt: skip
     text = table(
         ["case", "E", "per cell", "solved", "wall s", "threads", "eq. 30 lab x/y/z",
@@ -189,9 +178,9 @@ def main() -> None:
     echo(f"machine: {machine_line(info)}")
     for name in args.case or list(CASES):
         r = run_case(name)
-        blocks = ", ".join(_triple(r["eq30_vessel_by_block"][str(f)]["eq30"]) for f in SCALES)
+        blocks = ", ".join(percent_xyz(r["eq30_vessel_by_block"][str(f)]["eq30"]) for f in SCALES)
         echo(f"{name}: {r['particles_solved']} solved particles, {r['wall_s']:.0f} s, "
-             f"lab {_triple(r['eq30_lab_2_3'])}, vessel frame by block {blocks}")  # fmt: skip
+             f"lab {percent_xyz(r['eq30_lab_2_3'])}, vessel frame by block {blocks}")  # fmt: skip
         payload = _merge({"machine": info, "cases": {name: r}})
     echo()
     echo(report(payload["cases"], info))
