@@ -289,10 +289,10 @@ def write_atomic(path: Path, data: bytes | str) -> Path:
     return path
 
 
-def write_json(name: str, payload: dict) -> Path:
-    """Write ``results/<name>.json`` atomically."""
+def write_json(name: str, payload: dict, directory: Path | None = None) -> Path:
+    """Write ``<directory>/<name>.json`` atomically (default directory: ``results/``)."""
     text = json.dumps(payload, indent=2, sort_keys=False, default=_to_builtin) + "\n"
-    return write_atomic(RESULTS / f"{name}.json", text)
+    return write_atomic(Path(directory or RESULTS) / f"{name}.json", text)
 
 
 def _to_builtin(value):

@@ -148,9 +148,10 @@ def report(results: dict, info: dict) -> str:
         "of 2³ and 3³ cells (fill-weighted, `coarsen_fields`): what is left when the "
         "change within a block is averaged out. Noise part: eq. (30) between the even- "
         "and odd-numbered particles' averages of revolution 3, over sqrt 2 (vessel frame, "
-        "1³). Wall times are indicative: cases were run two at a time on the 2 cores "
-        "(column threads: beds under 20 000 solved particles run on one), the eq. (30) "
-        "figures do not depend on the load.\n\n" + text + "\n"
+        "1³). Wall times are indicative only: cases were run two at a time on the 2 "
+        "cores, oversubscribing them, and one was paused while another finished (column "
+        "threads: beds under 20 000 solved particles run on one); the eq. (30) figures "
+        "do not depend on the load.\n\n" + text + "\n"
     )
 
 
@@ -164,7 +165,7 @@ def _merge(new: dict) -> dict:
         old = json.loads(path.read_text()) if path.exists() else {}
         cases = {**old.get("cases", {}), **new["cases"]}
         payload = {**old, **new, "cases": cases}
-        write_json(NAME, payload)
+        write_json(NAME, payload, RESULTS)
         write_atomic(RESULTS / f"{NAME}.md", report(cases, payload["machine"]))
     return payload
 
