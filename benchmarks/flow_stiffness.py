@@ -130,7 +130,7 @@ def run(factor: float, cohesion: float) -> dict:
         "chord_offset_m": line.offset,
         "half_chord_m": line.half_chord,
         # the particles' current volumes (J times the seeded ones) at the end of the run
-        "particle_volume_growth": float(sim.particles.vol.sum() / sim.particles.vol0.sum() - 1),
+        "particle_volume_growth": sim.particles.volume_over_seeded - 1,
         "_fields": (fill_last[0], vel_last[0]),
     }
 

@@ -51,6 +51,7 @@ from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
     coarsen_fields,
     periodicity,
+    sampling_noise,
 )
 
 NAME = "flow_tote_periodicity"
@@ -97,8 +98,6 @@ def run_case(name: str) -> dict:
         fa, va = coarsen_fields(fill_a, vel_a, factor)
         coarse = periodicity(vb, va, fb, fa)
         vessel[str(factor)] = {"eq30": _pick(coarse), "norm": _pick(coarse, "_norm")}
-    halves = sim.last.half_fields()
-    noise = periodicity(halves[0][1], halves[1][1], halves[0][0], halves[1][0])
     last = history[-1]
     return {
         "case": name,
@@ -112,10 +111,8 @@ def run_case(name: str) -> dict:
         "eq30_lab_2_3": dict(zip(COMPONENTS, last[1:], strict=True)),
         "eq30_lab_history": [list(row) for row in history],
         "eq30_vessel_by_block": vessel,
-        # the halves each hold half the particles: their difference, over sqrt 2, is
-        # what the sampling noise of the whole average puts into eq. (30)
-        "noise_part_vessel": {c: noise[c] / 2**0.5 for c in COMPONENTS},
-        "current_volume_over_seeded": float((sim.particles.vol.sum()) / sim.particles.vol0.sum()),
+        "noise_part_vessel": _pick(sampling_noise(sim, vessel_frame=True)),
+        "current_volume_over_seeded": sim.particles.volume_over_seeded,
     }
 
 

@@ -229,6 +229,11 @@ class Particles:
         """Bytes of every per-particle array (the return codes included)."""
         return sum(a.nbytes for a in self.arrays().values()) + self.codes.nbytes
 
+    @property
+    def volume_over_seeded(self) -> float:
+        """The particles' current volume (J times the seeded) over their seeded volume."""
+        return float(self.vol.sum() / self.vol0.sum())
+
     def permute(self, order: np.ndarray) -> None:
         for name in self.fields:
             setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
@@ -1131,6 +1136,22 @@ def revolution_change(
     return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
+def sampling_noise(sim: FlowSimulation, *, vessel_frame=False) -> dict:
+    """The part of eq. (30) that the sampling noise of the phase averages alone accounts
+    for: :func:`periodicity` between the averages of the even- and odd-numbered
+    particles of the last revolution, over sqrt 2 (each half has twice the variance of
+    the whole, so two independent whole-sample averages would differ by 1/sqrt 2 of
+    it). Lab-frame velocities as :func:`revolution_change`, or with ``vessel_frame`` the
+    stored ones."""
+    (fill_a, vel_a, _), (fill_b, vel_b, _) = sim.last.half_fields()
+    if not (vessel_frame or sim.lab_frame or sim.settings.rpm == 0):
+        vel_a, vel_b = (_lab_velocities(sim, v) for v in (vel_a, vel_b))
+    return {
+        name: value / math.sqrt(2.0)
+        for name, value in periodicity(vel_a, vel_b, fill_a, fill_b).items()
+    }
+
+
 def _flow_from(
     sim: FlowSimulation, wall: float, stopped: str, revolution: str = "last"
 ) -> xr.Dataset:
@@ -1161,7 +1182,7 @@ def _flow_from(
         "dt_last_s": sim.stable_dt(),
         "material_volume_m3": float(sim.particles.vol0.sum()) * sim.copies,
         "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
-        "current_volume_over_seeded": float(sim.particles.vol.sum() / sim.particles.vol0.sum()),
+        "current_volume_over_seeded": sim.particles.volume_over_seeded,
         "fill_clipped_max": float(raw.max()),
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
@@ -1174,15 +1195,8 @@ def _flow_from(
         change = revolution_change(sim, sim.previous, sim.last, vessel_frame=True)
         for name, value in change.items():
             attrs[f"periodicity_{name}"] = value
-        # the same measure between the two halves of the particles within the last
-        # revolution: what sampling noise alone puts into eq. (30). Each half has twice
-        # the variance of the whole, so the difference of two independent whole-sample
-        # averages would be 1/sqrt(2) of it.
-        (fill_a, vel_a, _), (fill_b, vel_b, _) = sim.last.half_fields()
-        if not (sim.lab_frame or s.rpm == 0):
-            vel_a, vel_b = (_lab_velocities(sim, v) for v in (vel_a, vel_b))
-        for name, value in periodicity(vel_a, vel_b, fill_a, fill_b).items():
-            attrs[f"periodicity_noise_{name}"] = value / math.sqrt(2.0)
+        for name, value in sampling_noise(sim).items():
+            attrs[f"periodicity_noise_{name}"] = value
         attrs["periodicity_definition"] = (
             "eq. (30) between the last two recorded revolutions (rpm = 0: the last two "
             "averaging windows) on lab-frame velocities (the frame of the paper's fixed "
