@@ -832,7 +832,8 @@ def _g2p_range_2d(
             if a > 0:
                 b00 += a * l0
                 b10 += a * l1
-        if contact:
+        if contact and gap[p] > 0.0:
+            # a closed gap stays closed whatever the packing: no mass gather
             packing = 0.0
             for a in range(3):
                 i = bx + a
@@ -935,7 +936,8 @@ def _g2p_block_3d(
                     b01 += b * l0
                     b11 += b * l1
                     b21 += b * l2
-        if contact:
+        if contact and gap[p] > 0.0:
+            # a closed gap stays closed whatever the packing: no mass gather
             packing = 0.0
             for a in range(3):
                 i = bx + a
