@@ -7,6 +7,7 @@ blendxr; this module imports numba only inside functions, after that has happene
 from __future__ import annotations
 
 import datetime as _dt
+import fcntl
 import hashlib
 import json
 import os
@@ -329,6 +330,26 @@ def write_json(name: str, payload: dict, directory: Path | None = None) -> Path:
     """Write ``<directory>/<name>.json`` atomically (default directory: ``results/``)."""
     text = json.dumps(payload, indent=2, sort_keys=False, default=_to_builtin) + "\n"
     return write_atomic(Path(directory or RESULTS) / f"{name}.json", text)
+
+
+def merge_cases(name: str, new: dict, report, directory: Path | None = None) -> dict:
+    """Merge ``new["cases"]`` into the results ``name`` under a lock, rewrite its JSON and
+    its table (``report(cases, machine)``, a Markdown string) and return the merged payload.
+
+    Benchmarks whose cases run one at a time (``--case``) use it, so that two invocations
+    can share the machine and the file.
+    """
+    directory = RESULTS if directory is None else Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    with open(directory / f".{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        path = directory / f"{name}.json"
+        old = json.loads(path.read_text()) if path.exists() else {}
+        cases = {**old.get("cases", {}), **new["cases"]}
+        payload = {**old, **new, "cases": cases}
+        write_json(name, payload, directory)
+        write_atomic(directory / f"{name}.md", report(cases, payload["machine"]))
+    return payload
 
 
 def _to_builtin(value):

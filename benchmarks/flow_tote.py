@@ -59,7 +59,7 @@ import blendxr as bx  # noqa: E402
 from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
     _flow_from,
-    _lab_velocities,
+    lab_velocities,
     periodicity,
 )
 
@@ -122,7 +122,7 @@ def _attrs(flow) -> dict:
 def _last_revolution(sim) -> tuple[np.ndarray, np.ndarray]:
     """(fill, lab-frame velocities) of the last recorded revolution."""
     fill, vel, _ = sim.last.fields()
-    return fill, _lab_velocities(sim, vel)
+    return fill, lab_velocities(sim, vel)
 
 
 def twin_case(fraction, reference: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -31,20 +31,16 @@ import os
 os.environ["NUMBA_NUM_THREADS"] = "2"
 
 import argparse  # noqa: E402
-import fcntl  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import flow_tote  # noqa: E402
 from _common import (  # noqa: E402
-    RESULTS,
     echo,
     machine,
     machine_line,
+    merge_cases,
     percent_xyz,
     table,
-    write_atomic,
-    write_json,
 )
 
 from blendxr.flow.solver import (  # noqa: E402
@@ -152,21 +148,6 @@ def report(results: dict, info: dict) -> str:
     )
 
 
-def _merge(new: dict) -> dict:
-    """Merge ``new`` cases into the results file under a lock (two runs may share it)."""
-    RESULTS.mkdir(exist_ok=True)
-    lock_path = RESULTS / f".{NAME}.lock"
-    with open(lock_path, "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        path = RESULTS / f"{NAME}.json"
-        old = json.loads(path.read_text()) if path.exists() else {}
-        cases = {**old.get("cases", {}), **new["cases"]}
-        payload = {**old, **new, "cases": cases}
-        write_json(NAME, payload, RESULTS)
-        write_atomic(RESULTS / f"{NAME}.md", report(cases, payload["machine"]))
-    return payload
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", action="append", choices=list(CASES),
@@ -179,7 +160,7 @@ def main() -> None:
         blocks = ", ".join(percent_xyz(r["eq30_vessel_by_block"][str(f)]["eq30"]) for f in SCALES)
         echo(f"{name}: {r['particles_solved']} solved particles, {r['wall_s']:.0f} s, "
              f"lab {percent_xyz(r['eq30_lab_2_3'])}, vessel frame by block {blocks}")  # fmt: skip
-        payload = _merge({"machine": info, "cases": {name: r}})
+        payload = merge_cases(NAME, {"machine": info, "cases": {name: r}}, report)
     echo()
     echo(report(payload["cases"], info))
 

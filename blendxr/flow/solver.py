@@ -1105,8 +1105,21 @@ def _particle_dataset(sim: FlowSimulation) -> xr.Dataset:
     return ds
 
 
-def _lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
-    """Phase-binned vessel-frame velocities seen from the lab: R(theta_k) (v + w x r)."""
+def lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
+    """Phase-binned vessel-frame velocities seen from the lab: R(theta_k) (v + w x r).
+
+    Parameters
+    ----------
+    sim : FlowSimulation
+        The run whose output grid and rotation rate the fields have.
+    vel : ndarray, shape (n, *cells, d)
+        Vessel-frame velocities of the n phase bins on the output cells.
+
+    Returns
+    -------
+    ndarray, same shape
+        The velocities in the lab frame, the vessel turned by 2 pi k / n in bin k.
+    """
     out = np.empty_like(vel)
     centres = np.stack(np.meshgrid(*sim.out_axes, indexing="ij"), axis=-1)
     for k in range(vel.shape[0]):
@@ -1132,7 +1145,7 @@ def revolution_change(
         if vessel_frame:
             vessel = periodicity(vel_b, vel_a, fill_b, fill_a)
             out.update({f"vessel_frame_{name}": value for name, value in vessel.items()})
-        vel_b, vel_a = _lab_velocities(sim, vel_b), _lab_velocities(sim, vel_a)
+        vel_b, vel_a = lab_velocities(sim, vel_b), lab_velocities(sim, vel_a)
     return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
@@ -1145,7 +1158,7 @@ def sampling_noise(sim: FlowSimulation, *, vessel_frame=False) -> dict:
     stored ones."""
     (fill_a, vel_a, _), (fill_b, vel_b, _) = sim.last.half_fields()
     if not (vessel_frame or sim.lab_frame or sim.settings.rpm == 0):
-        vel_a, vel_b = (_lab_velocities(sim, v) for v in (vel_a, vel_b))
+        vel_a, vel_b = (lab_velocities(sim, v) for v in (vel_a, vel_b))
     return {
         name: value / math.sqrt(2.0)
         for name, value in periodicity(vel_a, vel_b, fill_a, fill_b).items()
