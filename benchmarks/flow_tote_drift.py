@@ -9,9 +9,10 @@ revolution r it reports:
 - eq. (30) between revolutions r - 1 and r (lab frame, as the issue's figure; vessel
   frame, without the rigid rotation);
 - the bed's volume as the solver carries it (J times the seeded volumes, over the
-  seeded volume), the mean contact gap, and the volume the particles really take: the
-  seeded 8 particles per cell over the mean count in the cells inside the bed (cells
-  whose 26 neighbours all hold particles), at the revolution's end;
+  seeded volume), the mean contact gap, the mean pressure, and the volume the particles
+  really take (``blendxr.flow.solver.occupied_volume_over_seeded``: the seeded 8
+  particles per cell over the mean count in the cells inside the bed, those whose 26
+  neighbours all hold particles), at the revolution's end;
 - the mixing answer on that revolution's flow: ``bx.mix`` over five revolutions
   (top-bottom loading, 50 cells, output every half revolution), its RSD at the end, and
   the largest relative change of the RSD curve from the revolution before's;
@@ -21,8 +22,9 @@ revolution r it reports:
   when the flow drifts).
 
 Run: ``python benchmarks/flow_tote_drift.py [--case NAME ...]`` (each case about 15
-minutes on one core of this machine; beds under 20 000 solved particles run on one
-thread, so two cases, started as two invocations, share 2 cores). Writes
+minutes on this machine; the flow solver runs beds under 20 000 solved particles on
+one thread, so two cases, started as two invocations, share 2 cores, but for the short
+mixing runs). Writes
 ``benchmarks/results/flow_tote_drift.{json,md}``.
 """
 
@@ -30,7 +32,7 @@ from __future__ import annotations
 
 import os
 
-os.environ["NUMBA_NUM_THREADS"] = "1"  # one core per case: two cases share the machine
+os.environ["NUMBA_NUM_THREADS"] = "2"
 
 import argparse  # noqa: E402
 import time  # noqa: E402
@@ -45,13 +47,13 @@ from _common import (  # noqa: E402
     percent_xyz,
     table,
 )
-from scipy.ndimage import binary_erosion  # noqa: E402
 
 import blendxr as bx  # noqa: E402
 from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
     _flow_from,
     lab_velocities,
+    occupied_volume_over_seeded,
     periodicity,
 )
 
@@ -70,21 +72,6 @@ def scene(dilation_deg: float) -> dict:
     out = flow_tote.tote(FILL, CELL, flow_tote.DEFAULT_SCALING, REVOLUTIONS, phases=PHASES)
     out["material"] = {"dilation_angle_deg": dilation_deg}
     return out
-
-
-def real_volume_over_seeded(sim: FlowSimulation) -> float:
-    """Seeded particles per cell over the mean count in the cells inside the bed.
-
-    The particles' own spacing, independent of the J the solver integrates: cells whose
-    26 neighbours all hold particles are inside the bed, away from its surface and walls.
-    """
-    p = sim.particles
-    cells = np.floor((p.x - sim.grid.origin) / sim.grid.h).astype(np.int64)
-    counts = np.zeros(tuple(int(n) for n in sim.grid.shape), np.int64)
-    np.add.at(counts, tuple(cells.T), 1)
-    inside = binary_erosion(counts > 0, structure=np.ones((3,) * sim.ndim, bool))
-    seeded = sim.settings.per_cell**sim.ndim
-    return float(seeded / counts[inside].mean())
 
 
 def _fields(flow) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +116,7 @@ def run_case(name: str) -> dict:
         row = {
             "revolution": r,
             "volume_over_seeded": sim.particles.volume_over_seeded,
-            "real_volume_over_seeded": real_volume_over_seeded(sim),
+            "real_volume_over_seeded": occupied_volume_over_seeded(sim),
             "mean_gap": float(sim.particles.gap.mean()),
             "mean_pressure_pa": _mean_pressure(sim),
         }

@@ -19,6 +19,7 @@ from blendxr.flow.solver import (
     PhaseAverager,
     _flow_from,
     coarsen_fields,
+    occupied_volume_over_seeded,
     revolution_change,
     solve_flow,
 )
@@ -217,6 +218,33 @@ def test_coarsened_fields_keep_material_and_momentum_and_match_block_sums(cells,
         np.testing.assert_allclose(coarse_vel[(slice(None), *block)], want, atol=1e-14)
     if factor == 1:
         np.testing.assert_array_equal(coarse_fill, fill)
+
+
+def box_bed_scene(ndim, cell):
+    return {
+        "name": f"box-bed-{ndim}d",
+        "vessel": {"kind": "box", "ndim": ndim, "size": [0.4] * ndim},
+        "operation": {"rpm": 0.0, "duration": 0.1},
+        "fill": {"box": [[-0.1, 0.1]] * ndim},
+        "flow": {"cell": cell},
+        "solver": {"settle_time": 0.0, "particles_per_cell": 3, "symmetry": "none"},
+    }
+
+
+@pytest.mark.parametrize("ndim, cell", [(2, 0.005), (3, 0.01)])
+def test_occupied_volume_counts_the_particles_spacing(ndim, cell):
+    sim = FlowSimulation(box_bed_scene(ndim, cell))
+    # seeded: every cell inside the bed holds per_cell**d particles
+    assert occupied_volume_over_seeded(sim) == 1.0
+    # the same particles spread uniformly at random over a box 1.25 times the bed's
+    # volume: the mean count inside falls by that factor (Poisson, 7 or more a cell, so
+    # hardly a cell is empty; standard error under 1 %)
+    rng = np.random.default_rng(5)
+    side = 0.2 * 1.25 ** (1.0 / ndim)
+    sim.particles.x[...] = rng.uniform(-side / 2, side / 2, sim.particles.x.shape)
+    assert occupied_volume_over_seeded(sim) == pytest.approx(1.25, rel=0.03)
+    # J says nothing of where the particles are
+    assert sim.particles.volume_over_seeded == 1.0
 
 
 def test_coarsening_refuses_a_bad_factor_or_shape():

@@ -1149,6 +1149,32 @@ def revolution_change(
     return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
+def occupied_volume_over_seeded(sim: FlowSimulation) -> float:
+    """The volume the particles occupy, from their spacing, over their seeded volume.
+
+    The seeded particles per solver cell (``per_cell ** d``) over the mean count in the
+    cells inside the bed, those whose neighbours (3^d block) all hold particles, so that
+    the bed's surface, its walls and a mirror plane leave no partly filled cell in the
+    mean. It is 1 exactly for a freshly seeded bed and measures a dilation from where the
+    particles are, independent of the J the solver integrates
+    (:attr:`Particles.volume_over_seeded`), which drifts from it in a flowing bed (the
+    particles move with the interpolated grid velocity, J with the affine matrix).
+    NaN when no cell lies inside the bed.
+    """
+    from scipy.ndimage import binary_erosion
+
+    g = sim.grid
+    shape = tuple(int(n) for n in g.shape)
+    cells = np.floor((sim.particles.x - g.origin) / g.h).astype(np.int64)
+    cells = np.clip(cells, 0, np.asarray(shape) - 1)
+    counts = np.bincount(np.ravel_multi_index(tuple(cells.T), shape), minlength=math.prod(shape))
+    counts = counts.reshape(shape)
+    inside = binary_erosion(counts > 0, structure=np.ones((3,) * sim.ndim, bool))
+    if not inside.any():
+        return float("nan")
+    return float(sim.settings.per_cell**sim.ndim / counts[inside].mean())
+
+
 def sampling_noise(sim: FlowSimulation, *, vessel_frame=False) -> dict:
     """The part of eq. (30) that the sampling noise of the phase averages alone accounts
     for: :func:`periodicity` between the averages of the even- and odd-numbered
@@ -1196,6 +1222,7 @@ def _flow_from(
         "material_volume_m3": float(sim.particles.vol0.sum()) * sim.copies,
         "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
         "current_volume_over_seeded": sim.particles.volume_over_seeded,
+        "occupied_volume_over_seeded": occupied_volume_over_seeded(sim),
         "fill_clipped_max": float(raw.max()),
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
