@@ -71,6 +71,13 @@ def _periodicity_lines(a) -> list[str]:
                 for j, row in zip(turned, zip(*columns, strict=True), strict=True)
             )
         )
+    if "occupied_volume_over_seeded" in a:
+        # a dilating bed keeps changing its flow (docs/flow.md, the dilation angle)
+        lines.append(
+            "bed volume over the seeded at the end: "
+            f"{a['current_volume_over_seeded']:.3f} as the solver carries it (J), "
+            f"{a['occupied_volume_over_seeded']:.3f} by the particles' spacing"
+        )
     return lines
 
 

@@ -92,6 +92,8 @@ def test_flow_verb_solves_writes_a_valid_flow_and_particles(tmp_path, capsys):
     assert "particle updates/s" in out and "periodicity" in out
     turned = np.atleast_1d(flow.attrs["periodicity_history_revolution"])
     assert f"eq. 30 by revolution (x / y): {turned[0] - 1}-{turned[0]} " in out
+    spacing = flow.attrs["occupied_volume_over_seeded"]
+    assert f"{spacing:.3f} by the particles' spacing" in out
 
 
 def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
