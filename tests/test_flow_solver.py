@@ -8,6 +8,7 @@ the elastic stiffness once the material is at rest relative to itself.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -245,6 +246,17 @@ def test_occupied_volume_counts_the_particles_spacing(ndim, cell):
     assert occupied_volume_over_seeded(sim) == pytest.approx(1.25, rel=0.03)
     # J says nothing of where the particles are
     assert sim.particles.volume_over_seeded == 1.0
+
+
+def test_recording_past_revolution_3_with_dilation_warns():
+    scene = drum_scene(0.4, revolutions=4)
+    with pytest.warns(UserWarning, match="dilation_angle_deg = 0.1 dilates"):
+        FlowSimulation(scene)
+    scene["material"] = {"dilation_angle_deg": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        FlowSimulation(scene)  # no dilation: nothing to warn of
+        FlowSimulation(drum_scene(0.4, revolutions=3))  # the paper's span and one more
 
 
 def test_coarsening_refuses_a_bad_factor_or_shape():

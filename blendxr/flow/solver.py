@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -552,6 +553,34 @@ def coarsen_fields(fill: np.ndarray, vel: np.ndarray, factor: int):
 # ----------------------------------------------------------------------------- simulation
 
 
+#: Revolutions after which a dilating bed's flow has been seen to drift (docs/flow.md).
+DILATION_DRIFT_AFTER = 3
+
+
+def _warn_of_dilation(settings: SolverSettings, material: Material) -> None:
+    """Warn when a rotating run records revolutions over which a dilating bed drifts.
+
+    With ψ > 0 every yielding particle dilates by sin ψ per unit of plastic shear strain,
+    with no end, and a tumbling bed yields all the time: in the 40 % Tote (ψ = 0.1°,
+    Table 1) the particles' spacing grows 1.5 % a revolution and the mixing answer on
+    revolutions 5 and 6 differs by a quarter from that on revolutions 2 to 4
+    (benchmarks/results/flow_tote_drift.md); with ψ = 0 it holds.
+    """
+    if (
+        settings.rpm > 0
+        and settings.revolutions > DILATION_DRIFT_AFTER
+        and material.dilation_angle_deg > 0
+    ):
+        warnings.warn(
+            f"material.dilation_angle_deg = {material.dilation_angle_deg:g} dilates a "
+            "tumbling bed without end, and flows recorded past revolution "
+            f"{DILATION_DRIFT_AFTER} drift with it (docs/flow.md); set it to 0 for a "
+            "flow that settles into a periodic state",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def _threads(particles: int) -> int:
     """Threads for a run: one below PARALLEL_MIN_PARTICLES.
 
@@ -582,6 +611,7 @@ class FlowSimulation:
         self.vessel = vessel_from_scene(self.scene)
         self.settings = s = SolverSettings.from_scene(self.scene, self.vessel)
         self.material = Material.from_scene(self.scene)
+        _warn_of_dilation(s, self.material)
         self.ndim = self.vessel.ndim
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
