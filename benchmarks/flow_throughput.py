@@ -113,10 +113,10 @@ def kernel_times(sim, dt) -> dict:
         "sort": lambda: mpm.sort_by_cell(p.x, g.origin, inv_h, shape),
         "p2g": lambda: (mpm.p2g_3d if three else mpm.p2g_2d)(
             p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt, sim.bulk,
-            g.thread_m, g.thread_p, sim.starts,
+            g.thread_grids, sim.starts,
         ),
         "reduce": lambda: (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
-            g.thread_m, g.thread_p, g.mass, g.momentum
+            g.thread_grids, g.mass, g.momentum
         ),
         "grid": lambda: (mpm.grid_update_3d if three else mpm.grid_update_2d)(
             g.mass, g.momentum, g.velocity, g.origin, g.h, dt, gravity, omega, damping,

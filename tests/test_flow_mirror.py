@@ -35,13 +35,11 @@ def _half_bed(n, h, seed=3):
 
 
 def _grid_of(x, v, C, m, vol, sigma, origin, h, shape):
-    grid_m = np.zeros((1, *shape))
-    grid_p = np.zeros((1, *shape, 3))
+    grids = np.zeros((1, *shape, 4))
     starts = kernels.chunk_starts(len(m), 1)
-    kernels.p2g_3d(x, v, C, m, vol, sigma, origin, 1.0 / h, 1e-4, (0.0, 0.0), grid_m, grid_p,
-                   starts)  # fmt: skip
+    kernels.p2g_3d(x, v, C, m, vol, sigma, origin, 1.0 / h, 1e-4, (0.0, 0.0), grids, starts)
     out_m, out_p = np.empty(shape), np.empty((*shape, 3))
-    kernels.reduce_grids_3d(grid_m, grid_p, out_m, out_p)
+    kernels.reduce_grids_3d(grids, out_m, out_p)
     return out_m, out_p
 
 

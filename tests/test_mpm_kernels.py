@@ -47,13 +47,12 @@ def _particles(d, n=60, seed=0, stress=True):
 def _p2g(d, x, v, C, m, vol, sigma, dt, n_chunks=2, bulk=(0.0, 0.0)):
     """Run the numba P2G with ``n_chunks`` private grids and reduce; return (m, p)."""
     shape = SHAPES[d]
-    grid_m = np.full((n_chunks, *shape), np.nan)  # NaN: the kernel must zero them
-    grid_p = np.full((n_chunks, *shape, d), np.nan)
+    grids = np.full((n_chunks, *shape, d + 1), np.nan)  # NaN: the kernel must zero them
     starts = kernels.chunk_starts(len(m), n_chunks)
-    P2G[d](x, v, C, m, vol, sigma, ORIGIN[d], INV_H, dt, bulk, grid_m, grid_p, starts)
+    P2G[d](x, v, C, m, vol, sigma, ORIGIN[d], INV_H, dt, bulk, grids, starts)
     out_m = np.empty(shape)
     out_p = np.empty((*shape, d))
-    REDUCE[d](grid_m, grid_p, out_m, out_p)
+    REDUCE[d](grids, out_m, out_p)
     return out_m, out_p
 
 

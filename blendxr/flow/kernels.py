@@ -22,8 +22,9 @@ One step is
 1. :func:`p2g_3d` scatters mass and MLS-MPM momentum
    ``p_i += w_ip [m_p v_p + (m_p C_p - dt vol_p D^-1 (sigma_p + q_p I))(x_i - x_p)]``,
    ``D^-1 = 4 / h**2``, ``q_p`` the bulk-viscous pressure from ``tr C_p``, into one
-   private grid per thread, and :func:`reduce_grids_3d` sums those (the internal-force
-   impulse is already in the momentum);
+   private grid per thread (mass and momentum side by side in each node's d + 1 values:
+   one cache line a node for the scatter), and :func:`reduce_grids_3d` sums those into
+   node masses and momenta (the internal-force impulse is already in the momentum);
 2. :func:`grid_update_3d` turns momentum into velocity and adds gravity, centrifugal,
    Coriolis (an exact rotation), damping and the frictional walls;
 3. :func:`g2p_3d` gathers the particle velocity and affine matrix ``C = D^-1 B``,
@@ -57,7 +58,7 @@ Parallel loops
 --------------
 P2G scatters: two particles write the same node, so each of T chunks of the particle range
 (``starts``, see :func:`chunk_starts`) scatters into its own private grid, a leading axis of
-length T of ``grid_m``/``grid_p``, and :func:`reduce_grids_3d` sums them; no atomics, and
+length T of ``grid``, and :func:`reduce_grids_3d` sums them; no atomics, and
 the result does not depend on the thread schedule. Sorting particles by cell now and then
 (:func:`sort_by_cell`) keeps each chunk in a slab of the grid, which keeps the scatter in
 cache. Every other kernel writes disjoint outputs per iteration of its one ``prange`` loop
@@ -307,11 +308,10 @@ def sort_by_cell(x, origin, inv_h, shape):
 
 
 @njit(**_JIT_SERIAL)
-def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, gp):
+def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gq):
     """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_2d`)."""
-    _zero(gm)
-    _zero(gp)
-    nx, ny = gm.shape
+    _zero(gq)
+    nx, ny = gq.shape[0], gq.shape[1]
     h = 1.0 / inv_h
     stress_scale = 4.0 * inv_h * inv_h * dt  # dt * D^-1
     for p in range(lo, hi):
@@ -339,17 +339,16 @@ def _p2g_chunk_2d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, 
                 dy = b - ry
                 w = wx[a] * wy[b]
                 j = by + b
-                gm[i, j] += w * mp
-                gp[i, j, 0] += w * (pa0 + q01 * dy)
-                gp[i, j, 1] += w * (pa1 + q11 * dy)
+                gq[i, j, 0] += w * mp
+                gq[i, j, 1] += w * (pa0 + q01 * dy)
+                gq[i, j, 2] += w * (pa1 + q11 * dy)
 
 
 @njit(**_JIT_SERIAL)
-def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, gp):
+def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gq):
     """Zero one private grid and scatter particles lo:hi into it (see :func:`p2g_3d`)."""
-    _zero(gm)
-    _zero(gp)
-    nx, ny, nz = gm.shape
+    _zero(gq)
+    nx, ny, nz = gq.shape[0], gq.shape[1], gq.shape[2]
     h = 1.0 / inv_h
     stress_scale = 4.0 * inv_h * inv_h * dt  # dt * D^-1
     for p in range(lo, hi):
@@ -392,14 +391,14 @@ def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gm, 
                     dz = c - rz
                     w = wab * wz[c]
                     k = bz + c
-                    gm[i, j, k] += w * mp
-                    gp[i, j, k, 0] += w * (pb0 + q02 * dz)
-                    gp[i, j, k, 1] += w * (pb1 + q12 * dz)
-                    gp[i, j, k, 2] += w * (pb2 + q22 * dz)
+                    gq[i, j, k, 0] += w * mp
+                    gq[i, j, k, 1] += w * (pb0 + q02 * dz)
+                    gq[i, j, k, 2] += w * (pb1 + q12 * dz)
+                    gq[i, j, k, 3] += w * (pb2 + q22 * dz)
 
 
 @njit(**_JIT)
-def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, starts):
+def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid, starts):
     """Scatter mass and MLS-MPM momentum to per-chunk private grids (2-D plane strain).
 
     Parameters
@@ -419,10 +418,9 @@ def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, sta
     bulk : tuple of float
         ``(linear, quadratic)`` bulk viscosity, see :func:`_bulk_pressure`; (0.0, 0.0)
         for none.
-    grid_m : ndarray of float64, shape (T, nx, ny)
-        Receives each chunk's node masses [kg] (zeroed here first).
-    grid_p : ndarray of float64, shape (T, nx, ny, 2)
-        Receives each chunk's node momenta [kg m/s], including the internal-force impulse.
+    grid : ndarray of float64, shape (T, nx, ny, 3)
+        Receives each chunk's node masses [kg] (``[..., 0]``) and momenta [kg m/s]
+        (``[..., 1:]``, including the internal-force impulse); zeroed here first.
     starts : ndarray of int64, shape (T + 1,)
         Chunk t holds particles ``starts[t]:starts[t + 1]`` (see :func:`chunk_starts`).
 
@@ -431,15 +429,15 @@ def p2g_2d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, sta
     Precondition: every particle in range (:func:`particles_in_range`). Sum the private
     grids with :func:`reduce_grids_2d`. T may exceed the thread count (still correct).
     """
-    for t in prange(grid_m.shape[0]):
+    for t in prange(grid.shape[0]):
         _p2g_chunk_2d(
             starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt, bulk,
-            grid_m[t], grid_p[t],
+            grid[t],
         )  # fmt: skip
 
 
 @njit(**_JIT)
-def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, starts):
+def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid, starts):
     """Scatter mass and MLS-MPM momentum to per-chunk private grids (3-D).
 
     Parameters
@@ -459,10 +457,11 @@ def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, sta
     bulk : tuple of float
         ``(linear, quadratic)`` bulk viscosity, see :func:`_bulk_pressure`; (0.0, 0.0)
         for none.
-    grid_m : ndarray of float64, shape (T, nx, ny, nz)
-        Receives each chunk's node masses [kg] (zeroed here first).
-    grid_p : ndarray of float64, shape (T, nx, ny, nz, 3)
-        Receives each chunk's node momenta [kg m/s], including the internal-force impulse.
+    grid : ndarray of float64, shape (T, nx, ny, nz, 4)
+        Receives each chunk's node masses [kg] (``[..., 0]``) and momenta [kg m/s]
+        (``[..., 1:]``, including the internal-force impulse); zeroed here first. Side by
+        side, a node's four values share a cache line: the scatter runs about a fifth
+        faster than into separate mass and momentum arrays (measured, one thread).
     starts : ndarray of int64, shape (T + 1,)
         Chunk t holds particles ``starts[t]:starts[t + 1]`` (see :func:`chunk_starts`).
 
@@ -471,67 +470,67 @@ def p2g_3d(x, v, C, m, vol, stress, origin, inv_h, dt, bulk, grid_m, grid_p, sta
     Precondition: every particle in range (:func:`particles_in_range`). Sum the private
     grids with :func:`reduce_grids_3d`. T may exceed the thread count (still correct).
     """
-    for t in prange(grid_m.shape[0]):
+    for t in prange(grid.shape[0]):
         _p2g_chunk_3d(
             starts[t], starts[t + 1], x, v, C, m, vol, stress, origin, inv_h, dt, bulk,
-            grid_m[t], grid_p[t],
+            grid[t],
         )  # fmt: skip
 
 
 @njit(**_JIT)
-def reduce_grids_2d(grid_m, grid_p, out_m, out_p):
+def reduce_grids_2d(grid, out_m, out_p):
     """Sum the private grids of :func:`p2g_2d` over their leading (chunk) axis.
 
     Parameters
     ----------
-    grid_m : ndarray of float64, shape (T, nx, ny)
-    grid_p : ndarray of float64, shape (T, nx, ny, 2)
+    grid : ndarray of float64, shape (T, nx, ny, 3)
+        Each chunk's node masses and momenta, as :func:`p2g_2d` leaves them.
     out_m : ndarray of float64, shape (nx, ny)
         Receives the node masses [kg].
     out_p : ndarray of float64, shape (nx, ny, 2)
         Receives the node momenta [kg m/s].
     """
-    n_chunks, nx, ny = grid_m.shape
+    n_chunks, nx, ny = grid.shape[0], grid.shape[1], grid.shape[2]
     for i in prange(nx):
         for j in range(ny):
-            mass = grid_m[0, i, j]
-            p0 = grid_p[0, i, j, 0]
-            p1 = grid_p[0, i, j, 1]
+            mass = grid[0, i, j, 0]
+            p0 = grid[0, i, j, 1]
+            p1 = grid[0, i, j, 2]
             for t in range(1, n_chunks):
-                mass += grid_m[t, i, j]
-                p0 += grid_p[t, i, j, 0]
-                p1 += grid_p[t, i, j, 1]
+                mass += grid[t, i, j, 0]
+                p0 += grid[t, i, j, 1]
+                p1 += grid[t, i, j, 2]
             out_m[i, j] = mass
             out_p[i, j, 0] = p0
             out_p[i, j, 1] = p1
 
 
 @njit(**_JIT)
-def reduce_grids_3d(grid_m, grid_p, out_m, out_p):
+def reduce_grids_3d(grid, out_m, out_p):
     """Sum the private grids of :func:`p2g_3d` over their leading (chunk) axis.
 
     Parameters
     ----------
-    grid_m : ndarray of float64, shape (T, nx, ny, nz)
-    grid_p : ndarray of float64, shape (T, nx, ny, nz, 3)
+    grid : ndarray of float64, shape (T, nx, ny, nz, 4)
+        Each chunk's node masses and momenta, as :func:`p2g_3d` leaves them.
     out_m : ndarray of float64, shape (nx, ny, nz)
         Receives the node masses [kg].
     out_p : ndarray of float64, shape (nx, ny, nz, 3)
         Receives the node momenta [kg m/s].
     """
-    n_chunks, nx, ny, nz = grid_m.shape
+    n_chunks, nx, ny, nz = grid.shape[0], grid.shape[1], grid.shape[2], grid.shape[3]
     for i in prange(nx):
         for j in range(ny):
             for k in range(nz):
-                mass = grid_m[0, i, j, k]
-                p0 = grid_p[0, i, j, k, 0]
-                p1 = grid_p[0, i, j, k, 1]
-                p2 = grid_p[0, i, j, k, 2]
+                mass = grid[0, i, j, k, 0]
+                p0 = grid[0, i, j, k, 1]
+                p1 = grid[0, i, j, k, 2]
+                p2 = grid[0, i, j, k, 3]
                 for t in range(1, n_chunks):
-                    mass += grid_m[t, i, j, k]
-                    p0 += grid_p[t, i, j, k, 0]
-                    p1 += grid_p[t, i, j, k, 1]
-                    p2 += grid_p[t, i, j, k, 2]
+                    mass += grid[t, i, j, k, 0]
+                    p0 += grid[t, i, j, k, 1]
+                    p1 += grid[t, i, j, k, 2]
+                    p2 += grid[t, i, j, k, 3]
                 out_m[i, j, k] = mass
                 out_p[i, j, k, 0] = p0
                 out_p[i, j, k, 1] = p1

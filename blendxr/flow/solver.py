@@ -277,8 +277,8 @@ class BackgroundGrid:
         self.scratch = np.zeros((threads, 4))
         self.shape_array = np.asarray(self.shape, np.int64)
         self.threads = threads
-        self.thread_m = np.zeros((threads, *self.shape))
-        self.thread_p = np.zeros((threads, *self.shape, self.ndim))
+        # per-thread P2G grids: each node's mass and momentum side by side
+        self.thread_grids = np.zeros((threads, *self.shape, self.ndim + 1))
         self.mass = np.zeros(self.shape)
         self.momentum = np.zeros((*self.shape, self.ndim))
         self.velocity = np.zeros((*self.shape, self.ndim))
@@ -286,10 +286,7 @@ class BackgroundGrid:
 
     @property
     def nbytes(self) -> int:
-        return sum(
-            a.nbytes
-            for a in (self.thread_m, self.thread_p, self.mass, self.momentum, self.velocity)
-        )
+        return sum(a.nbytes for a in (self.thread_grids, self.mass, self.momentum, self.velocity))
 
 
 _MIRROR = np.array([1.0, 1.0, -1.0])  # z -> -z
@@ -781,11 +778,9 @@ class FlowSimulation:
         inv_h = 1.0 / g.h
         (mpm.p2g_3d if three else mpm.p2g_2d)(
             p.x, p.v, p.C, p.mass, p.vol, p.stress, g.origin, inv_h, dt, self.bulk,
-            g.thread_m, g.thread_p, self.starts,
+            g.thread_grids, self.starts,
         )  # fmt: skip
-        (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(
-            g.thread_m, g.thread_p, g.mass, g.momentum
-        )
+        (mpm.reduce_grids_3d if three else mpm.reduce_grids_2d)(g.thread_grids, g.mass, g.momentum)
         if self.mirror:
             mpm.fold_mirror_3d(g.mass, g.momentum, g.mirror_index)
         (mpm.grid_update_3d if three else mpm.grid_update_2d)(
