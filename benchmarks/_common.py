@@ -36,8 +36,9 @@ def cpu_model() -> str:
 
 
 def cpu_details() -> dict:
-    """Family, model and stepping, clock [MHz], last-level cache and vector extensions of
-    the first CPU in /proc/cpuinfo ({} elsewhere).
+    """Family, model and stepping, clock [MHz], cache size (as /proc/cpuinfo gives it:
+    on AMD the L2 of a core) and vector extensions of the first CPU in /proc/cpuinfo ({}
+    elsewhere).
 
     Machines of one model name can differ by a CPU generation and nearly a factor of two
     in speed (the flow solver's step: 8.0 and 4.7 M particle updates/s on two "AMD EPYC"
@@ -349,6 +350,28 @@ def merge_cases(name: str, new: dict, report, directory: Path | None = None) -> 
         payload = {**old, **new, "cases": cases}
         write_json(name, payload, directory)
         write_atomic(directory / f"{name}.md", report(cases, payload["machine"]))
+    return payload
+
+
+def run_cases(name: str, description: str, cases, run_case, report, summary) -> dict:
+    """The main of a benchmark whose cases run one at a time: ``--case NAME`` (repeatable,
+    default all of ``cases``); each case's result ``run_case(case)`` is echoed as
+    ``summary(case, result)`` and merged into the results ``name`` (:func:`merge_cases`),
+    then the whole table is printed. Returns the merged payload."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--case", action="append", choices=list(cases),
+                        help="run this case (repeatable; default: all)")  # fmt: skip
+    args = parser.parse_args()
+    info = machine()
+    echo(f"machine: {machine_line(info)}")
+    for case in args.case or list(cases):
+        result = run_case(case)
+        echo(summary(case, result))
+        payload = merge_cases(name, {"machine": info, "cases": {case: result}}, report)
+    echo()
+    echo(report(payload["cases"], info))
     return payload
 
 

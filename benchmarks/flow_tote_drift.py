@@ -34,17 +34,15 @@ import os
 
 os.environ["NUMBA_NUM_THREADS"] = "2"
 
-import argparse  # noqa: E402
 import time  # noqa: E402
 
 import flow_tote  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import (  # noqa: E402
     echo,
-    machine,
     machine_line,
-    merge_cases,
     percent_xyz,
+    run_cases,
     table,
 )
 
@@ -52,9 +50,8 @@ import blendxr as bx  # noqa: E402
 from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
     _flow_from,
-    lab_velocities,
+    fields_change,
     occupied_volume_over_seeded,
-    periodicity,
 )
 
 NAME = "flow_tote_drift"
@@ -74,15 +71,6 @@ def scene(dilation_deg: float) -> dict:
     return out
 
 
-def _fields(flow) -> tuple[np.ndarray, np.ndarray]:
-    """(fill, velocity (n, x, y, z, 3)) of a flow dataset."""
-    fill = flow["fill"].transpose("rev_phase", "x", "y", "z").values
-    vel = np.stack(
-        [flow[c].transpose("rev_phase", "x", "y", "z").values for c in COMPONENTS], axis=-1
-    )
-    return fill, vel
-
-
 def _average(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Fill-weighted average of phase-binned fields: material volume and momentum kept."""
     fill = sum(f for f, _ in pairs) / len(pairs)
@@ -94,9 +82,11 @@ def _average(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np
 
 def _eq30(sim, a, b) -> dict:
     """Eq. (30) from fields a to fields b, lab and vessel frame."""
-    lab = periodicity(lab_velocities(sim, a[1]), lab_velocities(sim, b[1]), a[0], b[0])
-    vessel = periodicity(a[1], b[1], a[0], b[0])
-    return {"lab": {c: lab[c] for c in COMPONENTS}, "vessel": {c: vessel[c] for c in COMPONENTS}}
+    change = fields_change(sim, a, b, vessel_frame=True)
+    return {
+        "lab": {c: change[c] for c in COMPONENTS},
+        "vessel": {c: change[f"vessel_frame_{c}"] for c in COMPONENTS},
+    }
 
 
 def _mean_pressure(sim) -> float:
@@ -111,8 +101,7 @@ def run_case(name: str) -> dict:
     fields, rows, rsd = {}, [], {}
     for r in range(1, REVOLUTIONS + 1):
         sim.run(until=sim.settings.settle_time + r * sim.period, progress=False)
-        flow = _flow_from(sim, time.perf_counter() - started, "time")
-        fields[r] = _fields(flow)
+        fields[r] = sim.last.fields()[:2]  # revolution r's, as its flow dataset holds them
         row = {
             "revolution": r,
             "volume_over_seeded": sim.particles.volume_over_seeded,
@@ -122,6 +111,7 @@ def run_case(name: str) -> dict:
         }
         if r >= 2:
             row["eq30"] = _eq30(sim, fields[r - 1], fields[r])
+            flow = _flow_from(sim, time.perf_counter() - started, "time")
             rsd[r] = bx.mix(flow, **MIX)["rsd"].values
             row["mix_rsd"] = rsd[r].tolist()
             if r - 1 in rsd:
@@ -188,24 +178,17 @@ def report(results: dict, info: dict) -> str:
     )
 
 
+def _summary(name: str, r: dict) -> str:
+    last = r["by_revolution"][-1]
+    return (
+        f"{name}: {r['wall_s']:.0f} s, revolutions {REVOLUTIONS - 1}-{REVOLUTIONS} lab "
+        f"{percent_xyz(last['eq30']['lab'])}, J volume {last['volume_over_seeded']:.3f},"
+        f" real {last['real_volume_over_seeded']:.3f}"
+    )
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--case", action="append", choices=list(CASES),
-                        help="run this case (repeatable; default: all)")  # fmt: skip
-    args = parser.parse_args()
-    info = machine()
-    echo(f"machine: {machine_line(info)}")
-    for name in args.case or list(CASES):
-        r = run_case(name)
-        last = r["by_revolution"][-1]
-        echo(
-            f"{name}: {r['wall_s']:.0f} s, revolutions {REVOLUTIONS - 1}-{REVOLUTIONS} lab "
-            f"{percent_xyz(last['eq30']['lab'])}, J volume {last['volume_over_seeded']:.3f},"
-            f" real {last['real_volume_over_seeded']:.3f}"
-        )
-        payload = merge_cases(NAME, {"machine": info, "cases": {name: r}}, report)
-    echo()
-    echo(report(payload["cases"], info))
+    run_cases(NAME, __doc__.splitlines()[0], CASES, run_case, report, _summary)
 
 
 if __name__ == "__main__":

@@ -30,16 +30,13 @@ import os
 
 os.environ["NUMBA_NUM_THREADS"] = "2"
 
-import argparse  # noqa: E402
 import time  # noqa: E402
 
 import flow_tote  # noqa: E402
 from _common import (  # noqa: E402
-    echo,
-    machine,
     machine_line,
-    merge_cases,
     percent_xyz,
+    run_cases,
     table,
 )
 
@@ -148,21 +145,16 @@ def report(results: dict, info: dict) -> str:
     )
 
 
+def _summary(name: str, r: dict) -> str:
+    blocks = ", ".join(percent_xyz(r["eq30_vessel_by_block"][str(f)]["eq30"]) for f in SCALES)
+    return (
+        f"{name}: {r['particles_solved']} solved particles, {r['wall_s']:.0f} s, "
+        f"lab {percent_xyz(r['eq30_lab_2_3'])}, vessel frame by block {blocks}"
+    )
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--case", action="append", choices=list(CASES),
-                        help="run this case (repeatable; default: all)")  # fmt: skip
-    args = parser.parse_args()
-    info = machine()
-    echo(f"machine: {machine_line(info)}")
-    for name in args.case or list(CASES):
-        r = run_case(name)
-        blocks = ", ".join(percent_xyz(r["eq30_vessel_by_block"][str(f)]["eq30"]) for f in SCALES)
-        echo(f"{name}: {r['particles_solved']} solved particles, {r['wall_s']:.0f} s, "
-             f"lab {percent_xyz(r['eq30_lab_2_3'])}, vessel frame by block {blocks}")  # fmt: skip
-        payload = merge_cases(NAME, {"machine": info, "cases": {name: r}}, report)
-    echo()
-    echo(report(payload["cases"], info))
+    run_cases(NAME, __doc__.splitlines()[0], CASES, run_case, report, _summary)
 
 
 if __name__ == "__main__":

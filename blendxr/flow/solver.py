@@ -1159,12 +1159,26 @@ def lab_velocities(sim: FlowSimulation, vel: np.ndarray) -> np.ndarray:
 def revolution_change(
     sim: FlowSimulation, before: PhaseAverager, after: PhaseAverager, *, vessel_frame=False
 ) -> dict:
-    """Eq. (30) (:func:`periodicity`) between two recorded revolutions of a run, on
-    lab-frame velocities (the frame of the paper's fixed mesh); with ``vessel_frame``
-    also on the stored vessel-frame ones of a rotating vessel, as ``vessel_frame_*``
-    (stricter: they lack the rigid rotation)."""
-    fill_b, vel_b, _ = before.fields()
-    fill_a, vel_a, _ = after.fields()
+    """Eq. (30) (:func:`periodicity`) between two recorded revolutions of a run, as
+    :func:`fields_change` of their phase-binned fields."""
+    return fields_change(sim, before.fields()[:2], after.fields()[:2], vessel_frame=vessel_frame)
+
+
+def fields_change(sim: FlowSimulation, before: tuple, after: tuple, *, vessel_frame=False) -> dict:
+    """Eq. (30) (:func:`periodicity`) from one set of phase-binned fields of a run to
+    another, on lab-frame velocities (the frame of the paper's fixed mesh); with
+    ``vessel_frame`` also on the stored vessel-frame ones of a rotating vessel, as
+    ``vessel_frame_*`` (stricter: they lack the rigid rotation).
+
+    Parameters
+    ----------
+    sim : FlowSimulation
+        The run the fields come from (its output grid, frame and rotation rate).
+    before, after : tuple of ndarray
+        ``(fill, velocity)`` as :meth:`PhaseAverager.fields` gives them: one revolution's
+        averages, or any fill-weighted combination of them.
+    """
+    (fill_b, vel_b), (fill_a, vel_a) = before, after
     out = {}
     if not (sim.lab_frame or sim.settings.rpm == 0):
         if vessel_frame:
