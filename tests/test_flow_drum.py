@@ -223,6 +223,28 @@ def test_solver_drum_surface_sits_at_the_friction_angle(drum_surface):
     assert drum_surface.angle_deg == pytest.approx(PHI_DEG, abs=3.0)
 
 
+@pytest.fixture(scope="module")
+def angles_by_friction():
+    """Surface angle of the rolling drum (7.5 mm cells) with φ = 20° and 35°."""
+    out = {}
+    for phi in (20.0, 35.0):
+        scene = drum_scene()
+        scene["material"]["friction_angle_deg"] = phi
+        scene["flow"]["cell"] = 0.0075
+        out[phi] = surface_line(solve_flow(scene, progress=False)).angle_deg
+    return out
+
+
+@pytest.mark.parametrize("phi", [20.0, 35.0])
+def test_solver_drum_angle_follows_the_scenes_friction_angle(angles_by_friction, phi):
+    # measured: 22.6° and 33.5° at 7.5 mm (21.8° and 32.7° at 5 mm)
+    assert angles_by_friction[phi] == pytest.approx(phi, abs=3.0)
+
+
+def test_solver_drum_angle_rises_with_the_friction_angle(angles_by_friction):
+    assert angles_by_friction[35.0] - angles_by_friction[20.0] > 0.6 * 15.0
+
+
 def test_solver_drum_surface_is_flat(drum_flow, drum_surface):
     h = drum_flow.attrs["solver_cell_m"]
     # the exact flat surface of the analytic drum leaves 0.05 h rms (interpolation);
