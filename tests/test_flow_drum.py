@@ -18,6 +18,7 @@ import pytest
 
 from blendxr.flow.analytic import _drum_section, rolling_drum
 from blendxr.flow.diagnostics import (
+    drum_radius,
     layer_flux,
     rolling_drum_flux,
     surface_line,
@@ -171,6 +172,44 @@ def test_diagnostics_refuse_a_vessel_frame_flow():
     flow.attrs["frame"] = "vessel"
     with pytest.raises(ValueError, match="lab frame"):
         surface_line(flow)
+
+
+@pytest.mark.parametrize(
+    ("change", "call", "match"),
+    [
+        (None, lambda f: surface_line(f, method="rows"), "method must be 'normal' or 'column'"),
+        (None, lambda f: surface_line(f, level=1.0), r"level must be in \(0, 1\)"),
+        (None, lambda f: layer_flux(f, 0.075), "s must lie within the half-chord"),
+        ("empty", surface_line, "no free surface"),
+        ("full", surface_line, "no free surface"),
+        ("3-D", surface_line, "2-D flow"),
+        ("stretched", surface_line, "square cells"),
+    ],
+)
+def test_diagnostics_refuse_what_they_cannot_measure(change, call, match):
+    flow, _ = analytic(32)
+    if change == "empty":
+        flow["fill"][...] = 0.0
+    elif change == "full":  # a completely filled drum has no free surface either
+        flow["fill"][...] = flow["vessel"].astype(float).values[None]
+    elif change == "3-D":
+        flow = flow.expand_dims(z=[0.0])
+    elif change == "stretched":
+        flow = flow.assign_coords(y=2.0 * flow["y"])
+    with pytest.raises(ValueError, match=match):
+        call(flow)
+
+
+def test_drum_radius_from_the_analytic_recipe_the_scene_or_the_mask():
+    flow, _ = analytic(64)
+    assert drum_radius(flow) == RADIUS  # the analytic flow's own recipe
+    del flow.attrs["analytic"]
+    flow.attrs["scene"] = '[vessel]\nkind = "drum"\ndiameter = 0.3\n'
+    assert drum_radius(flow) == 0.15  # the scene's diameter
+    del flow.attrs["scene"]
+    # the disc of the masked cells' area: within a fraction of a cell of the radius
+    h = float(flow.x[1] - flow.x[0])
+    assert drum_radius(flow) == pytest.approx(RADIUS, abs=0.25 * h)
 
 
 # ----------------------------------------------------------------------------- solver
