@@ -329,6 +329,60 @@ def test_every_revolution_is_compared_with_the_one_before(tmp_path):
     assert again.periodicity_history() == sim.periodicity_history()
 
 
+def _by_revolution(scene, revolutions):
+    """Run ``scene`` stopping at the end of every revolution; the run and, for each
+    revolution, a copy of what the last phase averager held then (volume, momentum,
+    samples)."""
+    sim = FlowSimulation(scene)
+    held = {}
+    for r in range(1, revolutions + 1):
+        sim.run(until=sim.settings.settle_time + r * sim.period, progress=False)
+        last = sim.last
+        held[r] = (last.vol.sum(axis=0).copy(), last.mom.sum(axis=0).copy(), last.samples.copy())
+    return sim, held
+
+
+def _fields_of(*accumulated, cell_volume):
+    vol = sum(a[0] for a in accumulated)
+    mom = sum(a[1] for a in accumulated)
+    samples = sum(a[2] for a in accumulated)
+    fill = vol / (cell_volume * samples.reshape((-1,) + (1,) * (vol.ndim - 1)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vel = np.where(vol[..., None] > 0, mom / vol[..., None], 0.0)
+    return np.clip(fill, 0.0, 1.0), vel
+
+
+def test_flow_averaged_over_revolutions_is_their_volume_weighted_mean():
+    # the same run recorded revolution by revolution (average_revolutions = 1) gives each
+    # revolution's sums; averaging two revolutions must give the pooled average of
+    # revolutions 3 and 4, and eq. (30) must compare it with the pooled revolutions 1-2
+    scene = drum_scene(0.4, revolutions=4)
+    scene["material"] = {"dilation_angle_deg": 0.0}  # past revolution 3 (no warning)
+    single, held = _by_revolution(scene, 4)
+    assert single.last.samples.sum() == held[4][2].sum()  # the last revolution alone
+    scene["solver"]["average_revolutions"] = 2
+    pooled, _ = _by_revolution(scene, 4)
+    flow = _flow_from(pooled, 0.0, "time")
+    assert flow.attrs["averaged_revolutions"] == 2
+    cell_volume = pooled.settings.output_cell**2
+    fill, vel = _fields_of(held[3], held[4], cell_volume=cell_volume)
+    np.testing.assert_allclose(flow["fill"].values, fill, rtol=1e-12, atol=1e-15)
+    got = np.stack([flow["vx"].values, flow["vy"].values], axis=-1)
+    np.testing.assert_allclose(got, vel, rtol=1e-10, atol=1e-14)
+    before = _fields_of(held[1], held[2], cell_volume=cell_volume)
+    expected = periodicity(before[1], vel, before[0], fill)  # a drum: lab frame already
+    for c in ("vx", "vy"):
+        assert flow.attrs[f"periodicity_{c}"] == pytest.approx(expected[c], rel=1e-9)
+    np.testing.assert_array_equal(flow.attrs["periodicity_history_revolution"], [4])
+
+
+def test_averaging_more_revolutions_than_half_the_run_is_refused():
+    scene = drum_scene(0.4, revolutions=3)
+    scene["solver"]["average_revolutions"] = 2
+    with pytest.raises(SceneError, match=r"solver\.average_revolutions = 2 .* <= "):
+        FlowSimulation(scene)
+
+
 @pytest.mark.parametrize("cells", [(7, 5), (6, 4, 5)])
 @pytest.mark.parametrize("factor", [1, 2, 3])
 def test_coarsened_fields_keep_material_and_momentum_and_match_block_sums(cells, factor):

@@ -325,6 +325,7 @@ class SolverSettings:
     checkpoint_every: float
     seed: int
     symmetry: str = "auto"
+    average_revolutions: int = 1
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -343,6 +344,13 @@ class SolverSettings:
                     f"smallest extent, {0.5 * size:.4g} m"
                 )
         rpm = float(op["rpm"])
+        average = int(s.get("average_revolutions", 1))
+        if rpm > 0 and int(s["revolutions"]) < 2 * average:
+            faults.append(
+                f"solver.average_revolutions = {average} is out of range; allowed: <= "
+                f"solver.revolutions / 2 = {int(s['revolutions']) / 2:g} (the average of the "
+                "last revolutions is compared with the average of as many before)"
+            )
         duration = op.get("duration")
         if rpm == 0 and duration is None:
             faults.append("operation.duration: needed when operation.rpm = 0")
@@ -367,6 +375,7 @@ class SolverSettings:
             checkpoint_every=float(s["checkpoint_every"]),
             seed=int(s["seed"]),
             symmetry=s["symmetry"],
+            average_revolutions=average,
         )
 
 
@@ -866,8 +875,9 @@ class FlowSimulation:
             turning = self.turning_revolution()
             if turning < 1:
                 return
-            if turning != self.recording:
+            if self.recording == 0 or self._block(turning) != self._block(self.recording):
                 self._roll(turning)
+            self.recording = turning
             target = self.last
             phase = (self.t - s.settle_time) / self.period % 1.0
         else:
@@ -894,10 +904,18 @@ class FlowSimulation:
         turned = (self.t - self.settings.settle_time) / self.period
         return max(0, math.ceil(turned - 1e-9))
 
+    def _block(self, revolution: int) -> int:
+        """The block of ``solver.average_revolutions`` revolutions that ``revolution``
+        belongs to, counted back from the last revolution of the run (block 0): the flow
+        averages the last block, eq. (30) compares it with block 1. One revolution a
+        block by default, as the paper."""
+        s = self.settings
+        return (s.revolutions - revolution) // s.average_revolutions
+
     def _roll(self, turning: int) -> None:
-        """Start recording revolution ``turning``: eq. (30) between the revolution just
-        completed and the one before goes into the history, then the last becomes the
-        previous."""
+        """Start recording the block of revolution ``turning``: eq. (30) between the
+        block just completed and the one before goes into the history (labelled with
+        the completed block's last revolution), then the last becomes the previous."""
         if self.recording > 0 and self.both_recorded():
             change = revolution_change(self, self.previous, self.last)
             self.history.append(self._history_row(change))
@@ -1267,6 +1285,7 @@ def _flow_from(
         "reflected_particles": sim.reflected,
         "revolutions_turned": sim.revolution(),
         "recorded_revolution": revolution,
+        "averaged_revolutions": s.average_revolutions if s.rpm > 0 else 0,
         "samples_per_phase": recorded.samples.tolist(),
     }
     change = None
@@ -1277,7 +1296,9 @@ def _flow_from(
         for name, value in sampling_noise(sim).items():
             attrs[f"periodicity_noise_{name}"] = value
         attrs["periodicity_definition"] = (
-            "eq. (30) between the last two recorded revolutions (rpm = 0: the last two "
+            "eq. (30) between the last two recorded revolutions (averaged_revolutions > "
+            "1: between the averages of the last so many revolutions and of as many "
+            "before; rpm = 0: the last two "
             "averaging windows) on lab-frame velocities (the frame of the paper's fixed "
             "Eulerian mesh; periodicity_vessel_frame_*: the same on the stored "
             "vessel-frame velocities, which lack the rigid rotation and are stricter), "
@@ -1295,7 +1316,9 @@ def _flow_from(
         attrs["periodicity_history_definition"] = (
             "eq. (30) on lab-frame velocities as periodicity_v*, between each recorded "
             "revolution j + 1 = periodicity_history_revolution and the one before "
-            "(the paper's Table 3); the last entry is periodicity_v*"
+            "(the paper's Table 3; averaged_revolutions > 1: between each block of so "
+            "many revolutions, labelled with its last revolution, and the block before); "
+            "the last entry is periodicity_v*"
         )
     axes = dict(zip("xyz", sim.out_axes, strict=False))
     phases = np.arange(s.phases) / s.phases
