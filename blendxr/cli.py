@@ -45,13 +45,31 @@ def _mix_overrides(args) -> dict:
     return overrides
 
 
+def _blocks(last: int, n: int) -> str:
+    """``"3-4"`` for revolution 4 against 3; ``"1-2 to 3-4"`` for blocks of two (the
+    first block may be shorter: ``"1 to 2-4"``)."""
+    if n == 1:
+        return f"{last - 1}-{last}"
+
+    def span(first, end):
+        return f"{first}" if first == end else f"{first}-{end}"
+
+    return f"{span(max(1, last - 2 * n + 1), last - n)} to {span(last - n + 1, last)}"
+
+
 def _periodicity_lines(a) -> list[str]:
     """How periodic a solved flow is (eq. 30), from its attributes: the last two
     revolutions, and every two successive ones where the run recorded them."""
     lines = []
+    n = int(a.get("averaged_revolutions", 1) or 1)
     if "periodicity_vx_norm" in a:
+        between = (
+            "the last two revolutions"
+            if n == 1
+            else f"the averages of the last {n} revolutions and of the {n} before"
+        )
         lines.append(
-            "periodicity between the last two revolutions (eq. 30): "
+            f"periodicity between {between} (eq. 30): "
             + ", ".join(
                 f"{c} {a[f'periodicity_{c}']:.1%}"
                 for c in ("vx", "vy", "vz")
@@ -67,7 +85,7 @@ def _periodicity_lines(a) -> list[str]:
         lines.append(
             f"eq. 30 by revolution ({' / '.join(parts)}): "
             + "; ".join(
-                f"{j - 1}-{j} " + " / ".join(f"{v:.1%}" for v in row)
+                _blocks(j, n) + " " + " / ".join(f"{v:.1%}" for v in row)
                 for j, row in zip(turned, zip(*columns, strict=True), strict=True)
             )
         )

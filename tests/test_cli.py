@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import blendxr as bx
-from blendxr.cli import main
+from blendxr.cli import _blocks, main
 
 
 def test_mix_writes_valid_files_and_a_picture(tmp_path, capsys):
@@ -94,6 +94,16 @@ def test_flow_verb_solves_writes_a_valid_flow_and_particles(tmp_path, capsys):
     assert f"eq. 30 by revolution (x / y): {turned[0] - 1}-{turned[0]} " in out
     spacing = flow.attrs["occupied_volume_over_seeded"]
     assert f"{spacing:.3f} by the particles' spacing" in out
+
+
+@pytest.mark.parametrize(
+    ("last", "n", "label"),
+    [(3, 1, "2-3"), (4, 2, "1-2 to 3-4"), (4, 3, "1 to 2-4"), (7, 3, "2-4 to 5-7")],
+)
+def test_periodicity_history_names_the_revolutions_compared(last, n, label):
+    # with solver.average_revolutions = n each entry compares two blocks of n revolutions
+    # (the first may be shorter), labelled in the flow by the later block's last
+    assert _blocks(last, n) == label
 
 
 def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
