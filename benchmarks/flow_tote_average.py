@@ -12,14 +12,15 @@ with the average over the n before.
 Cases: the 40 % Tote at 10 rpm, 12.5 mm cell, 12 phase bins, E/10 (flow_tote's scene),
 seven revolutions, the flow averaged over the last three (revolutions 5-7, compared with
 2-4; revolution 1, the start from rest, in neither), without dilation (``psi0_n3``) and
-with Table 1's ψ = 0.1° (``table1_n3``), through ``bx.solve_flow``. Reported: eq. (30)
+with Table 1's ψ = 0.1° (``table1_n3``), through ``bx.solve_flow``; the baseline
+``psi0_n1`` records the same ψ = 0 run revolution by revolution. Reported: eq. (30)
 between the two averages (lab and vessel frame) and its sampling-noise part, and the
 mixing answer on the averaged flow (``bx.mix`` over five revolutions, top-bottom
 loading, 50 cells, as flow_tote_drift reports it for single revolutions).
 
 Run: ``python benchmarks/flow_tote_average.py [--case NAME ...]`` (each case about 12
 minutes on one core of this machine; the solver runs beds under 20 000 solved particles
-on one thread, so the two cases, started as two invocations, share 2 cores). Writes
+on one thread, so two cases, started as two invocations, share 2 cores). Writes
 ``benchmarks/results/flow_tote_average.{json,md}``.
 """
 
@@ -42,28 +43,29 @@ CELL = 0.0125
 PHASES = 12
 REVOLUTIONS = 7
 AVERAGED = 3
-#: case -> dilation angle [degrees]
-CASES = {"psi0_n3": 0.0, "table1_n3": 0.1}
+#: case -> (dilation angle [degrees], revolutions averaged); psi0_n1 is the baseline:
+#: the same run with single revolutions, eq. (30) between every two successive ones
+CASES = {"psi0_n3": (0.0, AVERAGED), "table1_n3": (0.1, AVERAGED), "psi0_n1": (0.0, 1)}
 MIX = {"revolutions": 5, "cells": 50, "output_every": 0.5, "progress": False}
 COMPONENTS = ("vx", "vy", "vz")
 
 
-def scene(dilation_deg: float) -> dict:
+def scene(dilation_deg: float, averaged: int) -> dict:
     out = flow_tote.tote(FILL, CELL, flow_tote.DEFAULT_SCALING, REVOLUTIONS, phases=PHASES)
     out["material"] = {"dilation_angle_deg": dilation_deg}
-    out["solver"]["average_revolutions"] = AVERAGED
+    out["solver"]["average_revolutions"] = averaged
     return out
 
 
 def run_case(name: str) -> dict:
     started = time.perf_counter()
-    flow = bx.solve_flow(scene(CASES[name]), progress=False)
+    flow = bx.solve_flow(scene(*CASES[name]), progress=False)
     wall = time.perf_counter() - started
     rsd = bx.mix(flow, **MIX)["rsd"].values
     a = flow.attrs
     return {
         "case": name,
-        "dilation_angle_deg": CASES[name],
+        "dilation_angle_deg": CASES[name][0],
         "revolutions": REVOLUTIONS,
         "averaged_revolutions": int(a["averaged_revolutions"]),
         "particles_solved": int(a["particles_solved"]),
@@ -72,6 +74,10 @@ def run_case(name: str) -> dict:
         "eq30_lab": {c: float(a[f"periodicity_{c}"]) for c in COMPONENTS},
         "eq30_vessel": {c: float(a[f"periodicity_vessel_frame_{c}"]) for c in COMPONENTS},
         "eq30_noise": {c: float(a[f"periodicity_noise_{c}"]) for c in COMPONENTS},
+        "eq30_history": {
+            "last_revolution": [int(r) for r in a["periodicity_history_revolution"]],
+            **{c: [float(v) for v in a[f"periodicity_history_{c}"]] for c in COMPONENTS},
+        },
         "mix_rsd": rsd.tolist(),
     }
 
@@ -86,6 +92,19 @@ def report(results: dict, info: dict) -> str:
         ]
         for name, r in ((c, results[c]) for c in CASES if c in results)
     ]  # fmt: skip
+    history = [
+        [name, f"{last - 1}-{last}", percent_xyz({c: r["eq30_history"][c][i] for c in COMPONENTS})]
+        for name, r in ((c, results[c]) for c in CASES if c in results)
+        if r["averaged_revolutions"] == 1
+        for i, last in enumerate(r["eq30_history"]["last_revolution"])
+    ]  # fmt: skip
+    baseline = (
+        "\nThe baseline, the same run recorded revolution by revolution "
+        "(`average_revolutions = 1`): eq. (30) between every two successive "
+        "revolutions.\n\n" + table(["case", "revolutions", "eq. 30 lab x/y/z"], history) + "\n"
+        if history
+        else ""
+    )
     return (
         f"<!-- written by benchmarks/{NAME}.py -->\n"
         f"Machine: {machine_line(info)}.\n\n"
@@ -111,6 +130,7 @@ def report(results: dict, info: dict) -> str:
             rows,
         )  # fmt: skip
         + "\n"
+        + baseline
     )
 
 
