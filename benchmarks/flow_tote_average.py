@@ -13,7 +13,8 @@ Cases: the 40 % Tote at 10 rpm, 12.5 mm cell, 12 phase bins, E/10 (flow_tote's s
 seven revolutions, the flow averaged over the last three (revolutions 5-7, compared with
 2-4; revolution 1, the start from rest, in neither), without dilation (``psi0_n3``) and
 with Table 1's ψ = 0.1° (``table1_n3``), through ``bx.solve_flow``; the baseline
-``psi0_n1`` records the same ψ = 0 run revolution by revolution. Reported: eq. (30)
+``psi0_n1`` records the same ψ = 0 run revolution by revolution; ``psi0_n3_60`` and
+``psi0_n1_60`` the same at 60 % fill. Reported: eq. (30)
 between the two averages (lab and vessel frame) and its sampling-noise part, and the
 mixing answer on the averaged flow (``bx.mix`` over five revolutions, top-bottom
 loading, 50 cells, as flow_tote_drift reports it for single revolutions).
@@ -43,15 +44,21 @@ CELL = 0.0125
 PHASES = 12
 REVOLUTIONS = 7
 AVERAGED = 3
-#: case -> (dilation angle [degrees], revolutions averaged); psi0_n1 is the baseline:
-#: the same run with single revolutions, eq. (30) between every two successive ones
-CASES = {"psi0_n3": (0.0, AVERAGED), "table1_n3": (0.1, AVERAGED), "psi0_n1": (0.0, 1)}
+#: case -> (dilation angle [degrees], revolutions averaged, fill); the *_n1 cases are the
+#: baselines: the same run with single revolutions, eq. (30) between every two successive
+CASES = {
+    "psi0_n3": (0.0, AVERAGED, FILL),
+    "table1_n3": (0.1, AVERAGED, FILL),
+    "psi0_n1": (0.0, 1, FILL),
+    "psi0_n3_60": (0.0, AVERAGED, 0.6),
+    "psi0_n1_60": (0.0, 1, 0.6),
+}
 MIX = {"revolutions": 5, "cells": 50, "output_every": 0.5, "progress": False}
 COMPONENTS = ("vx", "vy", "vz")
 
 
-def scene(dilation_deg: float, averaged: int) -> dict:
-    out = flow_tote.tote(FILL, CELL, flow_tote.DEFAULT_SCALING, REVOLUTIONS, phases=PHASES)
+def scene(dilation_deg: float, averaged: int, fill: float) -> dict:
+    out = flow_tote.tote(fill, CELL, flow_tote.DEFAULT_SCALING, REVOLUTIONS, phases=PHASES)
     out["material"] = {"dilation_angle_deg": dilation_deg}
     out["solver"]["average_revolutions"] = averaged
     return out
@@ -66,6 +73,7 @@ def run_case(name: str) -> dict:
     return {
         "case": name,
         "dilation_angle_deg": CASES[name][0],
+        "fill": CASES[name][2],
         "revolutions": REVOLUTIONS,
         "averaged_revolutions": int(a["averaged_revolutions"]),
         "particles_solved": int(a["particles_solved"]),
@@ -85,7 +93,8 @@ def run_case(name: str) -> dict:
 def report(results: dict, info: dict) -> str:
     rows = [
         [
-            name, r["dilation_angle_deg"], f"{r['revolutions']}, last {r['averaged_revolutions']}",
+            name, f"{r.get('fill', FILL):.0%}", r["dilation_angle_deg"],
+            f"{r['revolutions']}, last {r['averaged_revolutions']}",
             percent_xyz(r["eq30_lab"]), percent_xyz(r["eq30_vessel"]),
             percent_xyz(r["eq30_noise"]), f"{r['mix_rsd'][0]:.3f} -> {r['mix_rsd'][-1]:.3f}",
             f"{r['wall_s']:.0f}",
@@ -108,7 +117,8 @@ def report(results: dict, info: dict) -> str:
     return (
         f"<!-- written by benchmarks/{NAME}.py -->\n"
         f"Machine: {machine_line(info)}.\n\n"
-        f"The 40 % Tote, 10 rpm, {CELL * 1000:g} mm cell, {PHASES} phase bins, E/10, "
+        f"The Tote at 40 % (and 60 %: *_60), 10 rpm, {CELL * 1000:g} mm cell, "
+        f"{PHASES} phase bins, E/10, "
         f"turned {REVOLUTIONS} revolutions with `solver.average_revolutions = {AVERAGED}`: "
         f"the flow is the phase average over revolutions {REVOLUTIONS - AVERAGED + 1}-"
         f"{REVOLUTIONS}, and eq. (30) compares it with the average over revolutions "
