@@ -129,6 +129,7 @@ def report(results: dict, info: dict) -> str:
         + table(
             [
                 "case",
+                "fill",
                 "ψ °",
                 "revolutions, averaged",
                 "eq. 30 lab x/y/z",
