@@ -4,8 +4,9 @@ The flow between revolutions changes by a fixed amount whatever the lag: eq. (30
 revolutions r and r + k of the 40 % Tote (12.5 mm, ψ = 0) is 5.3-6.2 / 5.3-6.0 /
 14.7-15.4 % for k = 1, 6.0-6.5 / 5.8-6.6 / 15.6-16.6 % for k = 2 and 6.2-6.5 / 6.1-6.8 /
 16.6-18.1 % for k = 3 (measured ad hoc with the drift benchmark's scene): each revolution
-is a periodic flow plus a departure of its own, not a drift. An average over n
-revolutions then shrinks that departure by about sqrt n; ``solver.average_revolutions``
+is a periodic flow plus a departure of its own, not a drift, which an average over n
+revolutions should shrink (by up to sqrt n, were the departures independent; this
+benchmark measures by how much). ``solver.average_revolutions``
 makes the flow the phase average over the last n revolutions, and eq. (30) compares it
 with the average over the n before.
 
@@ -20,8 +21,9 @@ mixing answer on the averaged flow (``bx.mix`` over five revolutions, top-bottom
 loading, 50 cells, as flow_tote_drift reports it for single revolutions).
 
 Run: ``python benchmarks/flow_tote_average.py [--case NAME ...]`` (each case about 12
-minutes on one core of this machine; the solver runs beds under 20 000 solved particles
-on one thread, so two cases, started as two invocations, share 2 cores). Writes
+minutes at 40 % and 20 at 60 % on one core of this machine; the solver runs beds under
+20 000 solved particles on one thread, so two cases, started as two invocations, share
+2 cores). Writes
 ``benchmarks/results/flow_tote_average.{json,md}``.
 """
 

@@ -344,7 +344,7 @@ class SolverSettings:
                     f"smallest extent, {0.5 * size:.4g} m"
                 )
         rpm = float(op["rpm"])
-        average = int(s.get("average_revolutions", 1))
+        average = int(s["average_revolutions"])
         if rpm > 0 and int(s["revolutions"]) < 2 * average:
             faults.append(
                 f"solver.average_revolutions = {average} is out of range; allowed: <= "
@@ -875,8 +875,10 @@ class FlowSimulation:
             turning = self.turning_revolution()
             if turning < 1:
                 return
+            # the first sample starts a block whatever _block(0) says; within a block
+            # ``recording`` follows the revolution, so a block is labelled by its last
             if self.recording == 0 or self._block(turning) != self._block(self.recording):
-                self._roll(turning)
+                self._roll()
             self.recording = turning
             target = self.last
             phase = (self.t - s.settle_time) / self.period % 1.0
@@ -912,16 +914,15 @@ class FlowSimulation:
         s = self.settings
         return (s.revolutions - revolution) // s.average_revolutions
 
-    def _roll(self, turning: int) -> None:
-        """Start recording the block of revolution ``turning``: eq. (30) between the
-        block just completed and the one before goes into the history (labelled with
-        the completed block's last revolution), then the last becomes the previous."""
+    def _roll(self) -> None:
+        """Start recording a new block: eq. (30) between the block just completed and
+        the one before goes into the history (labelled with the completed block's last
+        revolution, ``recording``), then the last becomes the previous."""
         if self.recording > 0 and self.both_recorded():
             change = revolution_change(self, self.previous, self.last)
             self.history.append(self._history_row(change))
         self.previous.take(self.last)
         self.last.clear()
-        self.recording = turning
 
     def both_recorded(self) -> bool:
         """Whether the last two averaging windows (revolutions) are both complete."""
