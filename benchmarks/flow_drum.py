@@ -24,8 +24,11 @@ Per run, with ``blendxr.flow.diagnostics``:
 A diagnostic experiment: the cohesionless 5 mm case again with the solver's wall band
 (``blendxr.flow.solver.WALL_BAND``, nodes nearer to the wall than that many cells feel
 the wall) set to 0 at run time, to show where the bed's stand-off from the wall comes from.
+Another: the cohesionless case at 3.5 mm with E / 100 and no dilation, and with E / 10
+with and without Table 1's dilation angle, to show what the stiffness scaling (elastic
+compaction) and the dilation add to the layer's thin-layer deficit.
 
-Run: ``python benchmarks/flow_drum.py`` (about 6 minutes on 2 idle cores). Writes
+Run: ``python benchmarks/flow_drum.py`` (about 12 minutes on 2 idle cores). Writes
 ``benchmarks/results/flow_drum.{json,md,png}``; ``--report`` rewrites the Markdown and
 the plot from the JSON without running anything.
 """
@@ -85,18 +88,32 @@ REVOLUTIONS = 2
 PHI_DEG = 27.1
 S_FRACTIONS = (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6)
 MIDDLE = 0.4  # |s|/L within which the flux is summarised
+# (stiffness scaling, dilation angle in degrees): the cohesionless drum at one cell with
+# stiffer and non-dilating material, to tell the layer's own depth from what the E / 100
+# scaling (elastic compaction) and Table 1's dilation angle (a bed that keeps dilating)
+# add to the thin-layer deficit
+MATERIAL_CELL = 0.0035
+MATERIAL_CASES = ((100.0, 0.0), (10.0, 0.1), (10.0, 0.0))
 
 
-def scene(cell: float, cohesion: float) -> dict:
+def scene(
+    cell: float,
+    cohesion: float,
+    stiffness_scaling: float = STIFFNESS_SCALING,
+    dilation_angle_deg: float | None = None,
+) -> dict:
+    material = {"cohesion": cohesion}
+    if dilation_angle_deg is not None:
+        material["dilation_angle_deg"] = dilation_angle_deg
     return {
         "name": f"drum-2d-c{cohesion:g}-{cell * 1000:g}mm",
         "vessel": {"kind": "drum", "ndim": 2, "diameter": DIAMETER},
         "operation": {"rpm": RPM},
         "fill": {"fraction": FILL},
-        "material": {"cohesion": cohesion},
+        "material": material,
         "flow": {"cell": cell},
         "solver": {
-            "stiffness_scaling": STIFFNESS_SCALING,
+            "stiffness_scaling": stiffness_scaling,
             "settle_time": SETTLE_S,
             "revolutions": REVOLUTIONS,
             "checkpoint_every": 1e9,
@@ -178,10 +195,13 @@ SOLVER_ATTRS = (
 )
 
 
-def run_case(cell: float, cohesion: float, label: str | None = None) -> dict:
+def run_case(cell: float, cohesion: float, label: str | None = None, **material) -> dict:
+    """One drum run; ``material`` goes to :func:`scene` (stiffness scaling, dilation)."""
     with Contention() as meter:
         started = time.perf_counter()
-        flow, particles = solve_flow(scene(cell, cohesion), particles=True, progress=False)
+        flow, particles = solve_flow(
+            scene(cell, cohesion, **material), particles=True, progress=False
+        )
         wall = time.perf_counter() - started
     row = {
         "case": label or f"c = {cohesion:g} Pa",
@@ -213,7 +233,30 @@ def wall_band_experiment(cell: float) -> dict | None:
         solver.WALL_BAND = default
     row["wall_band_cells"] = 0.0
     row["default_wall_band_cells"] = default
+    row["experiment"] = "wall band"
     return row
+
+
+def material_experiments() -> list[dict]:
+    """The cohesionless drum at MATERIAL_CELL with other stiffness scalings and dilation."""
+    rows = []
+    for scaling, psi in MATERIAL_CASES:
+        label = f"c = 0 Pa, E / {scaling:g}, psi = {psi:g}"
+        row = run_case(
+            MATERIAL_CELL, 0.0, label=label, stiffness_scaling=scaling, dilation_angle_deg=psi
+        )
+        row.update(experiment="material", stiffness_scaling=scaling, dilation_angle_deg=psi)
+        rows.append(row)
+        echo(
+            f"{label}, {MATERIAL_CELL * 1000:g} mm: flux/thin (s=0) "
+            f"{row['flux']['flux_over_thin_layer'][3]:.3f}, wall {row['wall_s']:.0f} s"
+        )
+    return rows
+
+
+def is_experiment(row: dict) -> bool:
+    """Rows that change the solver or the material, left out of the cell study."""
+    return "experiment" in row or "wall_band_cells" in row
 
 
 def convergence(rows: list[dict]) -> list[dict]:
@@ -221,7 +264,7 @@ def convergence(rows: list[dict]) -> list[dict]:
     out = []
     for cohesion in COHESIONS:
         runs = sorted(
-            (r for r in rows if r["cohesion_pa"] == cohesion and "wall_band_cells" not in r),
+            (r for r in rows if r["cohesion_pa"] == cohesion and not is_experiment(r)),
             key=lambda r: -r["cell_m"],
         )
         figures = {
@@ -261,7 +304,7 @@ def plot(rows: list[dict], path) -> None:
     for ax, cohesion in zip(axes[:2], COHESIONS, strict=True):
         ax.plot(s_line, 1 - s_line**2, "k-", lw=1.5, label="ω (L² - s²)/2 (thin layer)")
         for r in rows:
-            if r["cohesion_pa"] != cohesion:
+            if r["cohesion_pa"] != cohesion or r.get("experiment") == "material":
                 continue
             f = r["flux"]
             scale = 0.5 * r["omega_rad_s"] * r["half_chord_m"] ** 2
@@ -290,6 +333,8 @@ def plot(rows: list[dict], path) -> None:
         ax.legend(fontsize=6.5, loc="lower center")
     ax = axes[2]
     for r in rows:
+        if r.get("experiment") == "material":
+            continue
         sp = r["surface_speed"]
         band = "wall_band_cells" in r
         colour = "tab:red" if band else colours.get(r["cell_m"], "grey")
@@ -453,7 +498,7 @@ def _thin_layer_terms(r: dict) -> dict:
 def findings(rows: list[dict], conv: list[dict]) -> str:
     """The figures that matter, in words (computed from the runs)."""
     lines = []
-    plain = [r for r in rows if "wall_band_cells" not in r]
+    plain = [r for r in rows if not is_experiment(r)]
     for cohesion in COHESIONS:
         runs = sorted(
             (r for r in plain if r["cohesion_pa"] == cohesion), key=lambda r: -r["cell_m"]
@@ -508,6 +553,19 @@ def findings(rows: list[dict], conv: list[dict]) -> str:
                 f"worst, rms {r['surface_rms_residual_m'] * 1000:.1f} mm): the rolling-drum "
                 "relations, which assume a flat surface, are only indicative there."
             )
+    for r in (r for r in rows if r.get("experiment") == "material"):
+        m, terms = r["middle"], _thin_layer_terms(r)
+        lines.append(
+            f"- Experiment, {r['case']}, {r['cell_m'] * 1000:g} mm: chord offset "
+            f"{r['chord_offset_m'] * 1000:+.1f} mm, largest raw fill "
+            f"{r['solver']['fill_clipped_max']:.2f}, layer {m['layer_depth_mid_m'] * 1000:.1f} mm "
+            f"deep, bed edge {m['wall_gap_mean_m'] * 1000:.1f} mm off the wall; layer flux / "
+            f"ω (L² - s²)/2 mean {_pct(m['flux_error_thin_layer_mean'])}, worst "
+            f"{_abs_pct(m['flux_error_thin_layer_max'])} in |s/L| ≤ {MIDDLE} (at s = 0 "
+            f"{_pct(terms['measured'])}: layer depth {_pct(terms['layer_depth'])}, wall gap "
+            f"{_pct(terms['wall_gap'])}); against the rigid-bed balance: worst "
+            f"{_abs_pct(m['flux_error_rigid_bed_max'])}."
+        )
     band = next((r for r in rows if "wall_band_cells" in r), None)
     if band is not None:
         m = band["middle"]
@@ -543,6 +601,7 @@ def measure() -> dict:
     band = wall_band_experiment(CELLS[0])
     if band is not None:
         rows.append(band)
+    rows.extend(material_experiments())
     payload = {
         "benchmark": "flow_drum",
         "machine": info,
@@ -556,6 +615,10 @@ def measure() -> dict:
             "settle_time_s": SETTLE_S,
             "revolutions": REVOLUTIONS,
             "friction_angle_deg": PHI_DEG,
+            "material_experiments": {
+                "cell_m": MATERIAL_CELL,
+                "stiffness_scaling_and_dilation_deg": MATERIAL_CASES,
+            },
             "s_over_L": S_FRACTIONS,
             "middle_s_over_L": MIDDLE,
             "definitions": {
