@@ -4,7 +4,7 @@ Scene: a 150 mm drum, half full (``fill.fraction = 0.5``), 10 rpm, the paper's T
 material with cohesion 0 (where the dynamic angle should be close to φ = 27.1°) and with
 the paper's c = 87 Pa, E scaled down by 100 (``solver.stiffness_scaling``; its error is
 measured by ``flow_stiffness.py``), settled for 0.3 s and turned for 2 revolutions; the
-flow is the lab-frame average of the last revolution. Cell sizes 5, 3.5 and 2.5 mm.
+flow is the lab-frame average of the last revolution. Cell sizes 5, 3.5, 2.5 and 1.75 mm.
 
 Per run, with ``blendxr.flow.diagnostics``:
 
@@ -81,7 +81,7 @@ DIAMETER = 0.15
 RPM = 10.0
 FILL = 0.5
 COHESIONS = (0.0, 87.0)
-CELLS = (0.005, 0.0035, 0.0025)
+CELLS = (0.005, 0.0035, 0.0025, 0.00175)
 STIFFNESS_SCALING = 100.0
 SETTLE_S = 0.3
 REVOLUTIONS = 2
@@ -188,6 +188,8 @@ SOLVER_ATTRS = (
     "material_volume_m3",
     "fill_volume_before_clipping_m3",
     "fill_clipped_max",
+    "fill_volume_m3",
+    "occupied_volume_over_seeded",
     "periodicity_vx",
     "periodicity_vy",
     "periodicity_vx_norm",
@@ -282,9 +284,10 @@ def convergence(rows: list[dict]) -> list[dict]:
             diffs = [b - a for a, b in zip(values[:-1], values[1:], strict=True)]
             order = None
             # an order only for differences of one sign that shrink (a converging figure)
-            if len(diffs) == 2 and diffs[0] * diffs[1] > 0 and abs(diffs[0]) > abs(diffs[1]):
-                ratio = math.sqrt((cells[0] / cells[1]) * (cells[1] / cells[2]))
-                order = math.log(abs(diffs[0]) / abs(diffs[1])) / math.log(ratio)
+            # from the last two differences
+            if len(diffs) >= 2 and diffs[-2] * diffs[-1] > 0 and abs(diffs[-2]) > abs(diffs[-1]):
+                ratio = math.sqrt(cells[-3] / cells[-1])
+                order = math.log(abs(diffs[-2]) / abs(diffs[-1])) / math.log(ratio)
             entry["figures"][name] = {
                 "values": values,
                 "differences": diffs,
@@ -300,7 +303,7 @@ def convergence(rows: list[dict]) -> list[dict]:
 def plot(rows: list[dict], path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
     s_line = np.linspace(-1, 1, 201)
-    colours = {0.005: "tab:blue", 0.0035: "tab:orange", 0.0025: "tab:green"}
+    colours = {0.005: "tab:blue", 0.0035: "tab:orange", 0.0025: "tab:green", 0.00175: "tab:purple"}
     for ax, cohesion in zip(axes[:2], COHESIONS, strict=True):
         ax.plot(s_line, 1 - s_line**2, "k-", lw=1.5, label="ω (L² - s²)/2 (thin layer)")
         for r in rows:
@@ -367,6 +370,19 @@ def _abs_pct(x) -> str:
     return "n/a" if x is None or x != x else f"{100 * abs(x):.1f} %"
 
 
+def _carried(row) -> str:
+    """The share of the material the stored (clipped) fill holds, and the largest raw fill."""
+    sol = row["solver"]
+    if sol.get("fill_volume_m3") is None:
+        return "n/a"
+    share = sol["fill_volume_m3"] / sol["material_volume_m3"]
+    return f"{100 * share:.1f} % ({sol['fill_clipped_max']:.2f})"
+
+
+def _ratio(x) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
 def _others(row) -> str:
     share = row["contention"]["other_cpu_share"]
     return "n/a" if share is None else f"{100 * share:.0f} %"
@@ -395,6 +411,8 @@ def tables(rows: list[dict], conv: list[dict]) -> tuple[str, str, str, str]:
                 f"{sol['periodicity_vx']:.3f} / {sol['periodicity_vy']:.3f}",
                 f"{sol['periodicity_vx_norm']:.3f} / {sol['periodicity_vy_norm']:.3f}",
                 _pct(r["particle_volume_growth"]),
+                _carried(r),
+                _ratio(sol.get("occupied_volume_over_seeded")),
             ]
         )
         f = r["flux"]
@@ -434,6 +452,8 @@ def tables(rows: list[dict], conv: list[dict]) -> tuple[str, str, str, str]:
             "periodicity eq.30 vx / vy",
             "periodicity norm vx / vy",
             "Σ vol / Σ vol0 - 1",
+            "fill holds (largest raw)",
+            "spacing vol / seeded",
         ],
         main_rows,
     )
@@ -472,7 +492,14 @@ def tables(rows: list[dict], conv: list[dict]) -> tuple[str, str, str, str]:
                 ]
             )
     t_conv = table(
-        ["case", "figure (lengths in mm)", "5 / 3.5 / 2.5 mm", "differences", "relative", "order"],
+        [
+            "case",
+            "figure (lengths in mm)",
+            " / ".join(f"{c * 1000:g}" for c in CELLS) + " mm",
+            "differences",
+            "relative",
+            "order (last two)",
+        ],
         conv_rows,
     )
     return t_main, t_flux, t_cost, t_conv
@@ -533,7 +560,7 @@ def findings(rows: list[dict], conv: list[dict]) -> str:
             + " m/s"
         )
         if order is not None and order > 0.5:
-            ratio = math.sqrt(cells[0] / cells[-1])
+            ratio = cells[-2] / cells[-1]
             limit = v[-1] + d[-1] / (ratio**order - 1.0)
             text += (
                 f": converging at observed order {order:.2f} (Richardson estimate of the "
@@ -659,6 +686,7 @@ def render(payload: dict) -> None:
     echo()
     echo(text_findings)
 
+    cells_mm = " / ".join(f"{c * 1000:g}" for c in CELLS)
     md = f"""<!-- written by benchmarks/flow_drum.py -->
 # Rolling drum (2-D) with the built-in flow solver
 
@@ -689,6 +717,11 @@ Periodicity: the solver's eq. (30) attributes between revolutions 1 and 2 (the f
 includes the start from rest). "Σ vol / Σ vol0 - 1": the particles' current volumes
 (J times the seeded ones) over the seeded ones at the end of the run; the fill counts
 the seeded volumes, so this drift shows only in the stress update and the positions.
+"fill holds": the share of the material's volume that the stored fill holds after
+clipping at 1, with the largest phase-averaged fill before clipping (cells whose
+particles crowd past their seeded packing); "spacing vol / seeded": the volume the
+particles take by their spacing at the end of the run over their seeded volume
+(`occupied_volume_over_seeded`; below 1 for a bed that compacted).
 
 {t_main}
 
@@ -704,8 +737,8 @@ the layer's flux (mass balance of the averaged field).
 
 ## Convergence with the cell
 
-Values at 5 / 3.5 / 2.5 mm, differences between successive cells, and the observed order
-log(|d1| / |d2|) / log(1.41) when both differences have the same sign and shrink.
+Values at {cells_mm} mm, differences between successive cells, and the observed order
+log(|d1| / |d2|) / log(1.41) from the last two differences, when they have the same sign and shrink.
 
 {t_conv}
 

@@ -96,6 +96,12 @@ def _periodicity_lines(a) -> list[str]:
             f"{a['current_volume_over_seeded']:.3f} as the solver carries it (J), "
             f"{a['occupied_volume_over_seeded']:.3f} by the particles' spacing"
         )
+    if "fill_volume_m3" in a:
+        # cells packed past a full cell are clipped, and the flow's bed loses that much
+        lines.append(
+            f"the flow's fill holds {a['fill_volume_m3'] / a['material_volume_m3']:.1%} of "
+            f"the bed's material (largest cell {a['fill_clipped_max']:.2f} before clipping)"
+        )
     return lines
 
 

@@ -19,6 +19,7 @@ from blendxr.flow.solver import (
     FlowSimulation,
     PhaseAverager,
     _flow_from,
+    _warn_of_clipped_fill,
     coarsen_fields,
     lab_velocities,
     occupied_volume_over_seeded,
@@ -128,6 +129,8 @@ def test_solve_flow_gives_a_valid_flow_that_conserves_material_and_mixes(tmp_pat
     clipped = float(flow["fill"].mean("rev_phase").sum()) * cell_area
     assert 0.95 * flow.attrs["material_volume_m3"] < clipped
     assert clipped <= flow.attrs["material_volume_m3"] * (1 + 1e-12)
+    # the attribute says what the stored (float32) fill holds
+    assert flow.attrs["fill_volume_m3"] == pytest.approx(clipped, rel=1e-6)
     for key in (
         "periodicity_vx",
         "periodicity_vy",
@@ -453,6 +456,15 @@ def test_recording_past_revolution_3_with_dilation_warns():
         warnings.simplefilter("error")
         FlowSimulation(scene)  # no dilation: nothing to warn of
         FlowSimulation(drum_scene(0.4, revolutions=3))  # the paper's span and one more
+
+
+def test_a_fill_that_clipping_left_short_of_the_material_warns():
+    attrs = {"material_volume_m3": 2.0, "fill_clipped_max": 1.8, "stiffness_scaling": 100.0}
+    with pytest.warns(UserWarning, match=r"holds 90\.0% of the bed's material.*1\.80 times"):
+        _warn_of_clipped_fill({**attrs, "fill_volume_m3": 1.8})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_of_clipped_fill({**attrs, "fill_volume_m3": 1.95})  # 2.5 % lost: no warning
 
 
 def test_coarsening_refuses_a_bad_factor_or_shape():

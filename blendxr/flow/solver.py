@@ -57,6 +57,8 @@ RAMP_SHARE = 0.6  # share of the settling time over which gravity ramps up (damp
 PARALLEL_MIN_PARTICLES = 20_000  # smaller beds run on one thread (see _threads)
 GRID_PADDING = 3  # empty nodes around the vessel's bounding box (B-spline support + margin)
 DEFAULT_PHASES = 36
+#: Largest move of a particle in one step of the crowding relief, in cells.
+RELIEF_MAX_SHIFT = 0.01
 WALL_BAND = 0.5  # nodes closer to the wall than this many cells get the wall law (docs/flow.md)
 WALL_SKIN = 1e-3  # projected particles land this many cells inside the wall
 
@@ -326,6 +328,7 @@ class SolverSettings:
     seed: int
     symmetry: str = "auto"
     average_revolutions: int = 1
+    crowding_relief: float = 0.0
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -376,6 +379,7 @@ class SolverSettings:
             seed=int(s["seed"]),
             symmetry=s["symmetry"],
             average_revolutions=average,
+            crowding_relief=float(s["crowding_relief"]),
         )
 
 
@@ -587,6 +591,32 @@ def _warn_of_dilation(settings: SolverSettings, material: Material) -> None:
         )
 
 
+#: Share of the bed's material the clipped fill may lose before the solver warns.
+FILL_LOSS_WARN = 0.03
+
+
+def _warn_of_clipped_fill(attrs) -> None:
+    """Warn when clipping the fill at 1 drops more than FILL_LOSS_WARN of the material.
+
+    The fill counts seeded particle volumes per cell, so a cell whose particles crowd
+    denser than they were seeded reads above 1 and is clipped: what it held beyond a
+    full cell is missing from the stored flow, whose bed is then smaller than the
+    scene's. Two causes are measured (docs/flow.md): a soft bed's elastic compaction
+    under its own weight (E / 100 compacts the default Tote's hopper by a fifth) and
+    particles crowding against a wall that carries the bed.
+    """
+    carried = attrs["fill_volume_m3"] / attrs["material_volume_m3"]
+    if carried < 1.0 - FILL_LOSS_WARN:
+        warnings.warn(
+            f"the flow's fill holds {carried:.1%} of the bed's material: particles packed "
+            f"up to {attrs['fill_clipped_max']:.2f} times their seeded packing were clipped "
+            f"at a full cell (stiffness scaling {attrs['stiffness_scaling']:g}; a stiffer "
+            "material crowds less, docs/flow.md)",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def _threads(particles: int) -> int:
     """Threads for a run: one below PARALLEL_MIN_PARTICLES.
 
@@ -643,6 +673,7 @@ class FlowSimulation:
         # inverse of a node's mass at the seeded packing (kernels.g2p_2d), the mu(I)
         # friction's constants
         packed_node = self.material.density * s.cell**self.ndim
+        self.inv_packed_node = 1.0 / packed_node
         self.stress_arguments = (
             self.material.return_arguments()
             + (1.0 / packed_node if self.material.lost_contact else 0.0,)
@@ -802,6 +833,11 @@ class FlowSimulation:
             p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.mass, g.origin,
             inv_h, dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
+        if self.settings.crowding_relief > 0.0:
+            (mpm.relieve_crowding_3d if three else mpm.relieve_crowding_2d)(
+                p.x, g.mass, g.origin, inv_h, self.inv_packed_node,
+                self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
+            )  # fmt: skip
         if self.mirror:
             self.reflected += reflect_across_mirror(
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
@@ -1279,6 +1315,7 @@ def _flow_from(
         "dt_last_s": sim.stable_dt(),
         "material_volume_m3": float(sim.particles.vol0.sum()) * sim.copies,
         "fill_volume_before_clipping_m3": float(raw.mean(axis=0).sum() * s.output_cell**sim.ndim),
+        "fill_volume_m3": float(fill.mean(axis=0).sum() * s.output_cell**sim.ndim),
         "current_volume_over_seeded": sim.particles.volume_over_seeded,
         "occupied_volume_over_seeded": occupied_volume_over_seeded(sim),
         "fill_clipped_max": float(raw.max()),
@@ -1404,6 +1441,7 @@ def solve_flow(
             f"{sim.end_time():.4g} s; call again with the same checkpoint to resume"
         )
     flow = _flow_from(sim, time.perf_counter() - started, stopped)
+    _warn_of_clipped_fill(flow.attrs)
     if particles:
         return flow, _particle_dataset(sim)
     return flow
