@@ -9,9 +9,11 @@ drum, each measured in a representative state: settled under gravity for 0.3 s a
 turned for 1 s (60 degrees: gravity rotating, Coriolis on, the bed avalanching, so
 much of the stress update takes its plastic branches; the shares of each return are
 reported). E is scaled down by 100 to reach that state quickly; the cost of a step does
-not depend on E. Each kernel is also timed alone. The whole bed is solved
-(``solver.symmetry = "none"``): by default a symmetric Tote is solved as its half
-z >= 0, the same work per particle on half the particles plus a fold of the grid.
+not depend on E. Each kernel is also timed alone, and so is the optional crowding
+relief's pass (``solver.crowding_relief``, off by default and not in the step's time).
+The whole bed is solved (``solver.symmetry = "none"``): by default a symmetric Tote is
+solved as its half z >= 0, the same work per particle on half the particles plus a fold
+of the grid.
 
 Memory per particle is the particle arrays' bytes (positions, velocities, affine
 matrices, which are also the velocity gradients, stress, volumes, masses, Jacobians,
@@ -126,6 +128,12 @@ def kernel_times(sim, dt) -> dict:
         "project": lambda: project_into_vessel(
             sim.vessel.kind, sim.vessel.params, p.x, p.v, 1e-6, sim.starts, g.scratch,
             g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
+        ),
+        # the optional crowding relief (solver.crowding_relief; off by default, so not in
+        # the step's time): its own pass over the particles
+        "relief": lambda: (mpm.relieve_crowding_3d if three else mpm.relieve_crowding_2d)(
+            p.x, g.mass, g.origin, inv_h, sim.inv_packed_node, 1e-3 * g.h, 0.01 * g.h,
+            sim.starts,
         ),
     }  # fmt: skip
     out = {}
