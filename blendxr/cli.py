@@ -287,11 +287,20 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line, like the errors (the source line means nothing to a user)."""
+    print(f"blendxr: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``blendxr`` command."""
+    import warnings
+
     args = _parser().parse_args(argv)
     try:
-        return args.func(args)
+        with warnings.catch_warnings():  # restored on return, for callers in the process
+            warnings.showwarning = _show_warning
+            return args.func(args)
     except KeyboardInterrupt:
         print("blendxr: interrupted", file=sys.stderr)
         return 130
