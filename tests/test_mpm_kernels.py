@@ -555,7 +555,7 @@ def test_crowding_relief_leaves_a_bed_at_its_seeded_packing_alone(d):
 def test_crowding_relief_spreads_a_crowded_bed_and_keeps_its_centre(d):
     # the lattice squeezed by 0.8 per axis about its centre: its nodes hold 1 / 0.8^d
     # times the packed mass; relief steps (P2G between them) bring the densest node
-    # towards the seeded packing, symmetrically
+    # to the seeded packing, symmetrically
     shape = np.array(SHAPES[d])
     centre = ORIGIN[d] + H * (shape - 1) / 2
     axes = [H * (0.25 + 0.5 * np.arange(-4, 4)) for _ in range(d)]
@@ -573,5 +573,5 @@ def test_crowding_relief_spreads_a_crowded_bed_and_keeps_its_centre(d):
     for _ in range(200):
         x = _relieve(d, x, masses(x), 1.0 / packed, 0.1 * H, 0.01 * H)
     end = masses(x).max() / packed
-    assert start > 1.3 and end < 1.0 + 0.25 * (start - 1.0)
+    assert start > 1.5 and end < 1.0 + 1e-3  # 1.54 (2-D), 1.91 (3-D) to within 1e-6
     np.testing.assert_allclose(x.mean(axis=0), centre, atol=1e-12)
