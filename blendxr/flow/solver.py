@@ -601,9 +601,11 @@ def _warn_of_clipped_fill(attrs) -> None:
     The fill counts seeded particle volumes per cell, so a cell whose particles crowd
     denser than they were seeded reads above 1 and is clipped: what it held beyond a
     full cell is missing from the stored flow, whose bed is then smaller than the
-    scene's. Two causes are measured (docs/flow.md): a soft bed's elastic compaction
-    under its own weight (E / 100 compacts the default Tote's hopper by a fifth) and
-    particles crowding against a wall that carries the bed.
+    scene's. Particles crowd so where no stress sees it (they move with the grid
+    velocity, their volumes with the affine matrix), the more the softer the material
+    and the more steps a run takes: the cohesionless E / 100 drum's fill holds 88-92 %,
+    at E / 10 97-99 %, the 40 % Tote 95 % (benchmarks/results/flow_crowding.md,
+    flow_drum.md; ``solver.crowding_relief`` reduces it).
     """
     carried = attrs["fill_volume_m3"] / attrs["material_volume_m3"]
     if carried < 1.0 - FILL_LOSS_WARN:
