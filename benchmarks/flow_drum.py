@@ -28,7 +28,7 @@ Another: the cohesionless case at 3.5 mm with E / 100 and no dilation, and with 
 with and without Table 1's dilation angle, to show what the stiffness scaling (elastic
 compaction) and the dilation add to the layer's thin-layer deficit.
 
-Run: ``python benchmarks/flow_drum.py`` (about 12 minutes on 2 idle cores). Writes
+Run: ``python benchmarks/flow_drum.py`` (about 23 minutes; the 2-D beds run on one core). Writes
 ``benchmarks/results/flow_drum.{json,md,png}``; ``--report`` rewrites the Markdown and
 the plot from the JSON without running anything.
 """
