@@ -16,32 +16,41 @@ DEFAULT_MIX_SCENE = "drum-2d"  # an analytic flow: mixing alone, in seconds
 DEFAULT_RUN_SCENE = "tote-small"  # flow solver + mixing + report, in minutes
 
 
-def _flow_for_scene(scene, flow_path=None, quiet=False, checkpoint=None):
-    """The flow a scene asks for: an analytic flow, a file, or the built-in solver."""
-    from . import flows, solve_flow
-    from .io import open_flow
+#: Shell flags that are shorthands for scene keys (``--k1 0.02`` is ``--set mixing.k1=0.02``).
+MIX_FLAGS = {
+    "scheme": "numerics.scheme",
+    "k1": "mixing.k1",
+    "k2": "mixing.k2",
+    "revolutions": "mixing.revolutions",
+    "cells": "numerics.cells",
+    "output_every": "mixing.output_every",
+    "initial": "mixing.loading",
+}
+FLOW_FLAGS = {
+    "cell": "solver.cell",
+    "revolutions": "solver.revolutions",
+    "stiffness_scaling": "solver.stiffness_scaling",
+}
 
-    if flow_path is not None:
-        return open_flow(flow_path)
-    spec = scene["flow"]
-    source = spec.get("source", "solver")
-    if source == "analytic":
-        maker = getattr(flows, spec["analytic"])
-        return maker(**spec.get("parameters", {}))
-    if source == "file":
-        return open_flow(spec["path"])
-    return solve_flow(scene, progress=not quiet, checkpoint=checkpoint)
+
+def _scene_from_args(args, flags: dict):
+    """The scene with ``--set`` values and the flag shorthands applied (flags last)."""
+    from .scene import load_scene, parse_assignment
+
+    values = dict(parse_assignment(text) for text in (args.set or []))
+    for name, key in flags.items():
+        value = getattr(args, name, None)
+        if value is not None:  # a flag given as 0 is a value too, and is validated
+            values[key] = value
+    return load_scene(args.scene, values)
 
 
 def _mix_overrides(args) -> dict:
     overrides = {}
-    for name in ("scheme", "k1", "k2", "revolutions", "cells", "output_every", "dt", "initial"):
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides[name] = value
+    if getattr(args, "dt", None) is not None:
+        overrides["dt"] = args.dt
     if args.checkpoint:
         overrides["checkpoint"] = args.checkpoint
-    overrides["progress"] = not args.quiet
     return overrides
 
 
@@ -128,19 +137,26 @@ def _summary(mixed) -> str:
 def _cmd_mix(args) -> int:
     from . import mix
     from .io import write_dataset
-    from .plot import save_report_figure
-    from .scene import load_scene
+    from .pipeline import check_output_folder, scene_flow
+    from .plot import save_mixing_figure
 
-    scene = load_scene(args.scene)
-    flow_checkpoint = f"{args.checkpoint}.flow" if args.checkpoint else None
-    flow = _flow_for_scene(scene, args.flow, args.quiet, flow_checkpoint)
-    mixed = mix(flow, scene, **_mix_overrides(args))
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
+    scene = _scene_from_args(args, MIX_FLAGS)
+    out = check_output_folder(args.output)
+    flow, source = scene_flow(
+        scene,
+        cache=args.cache,
+        use_cache=not args.no_cache,
+        flow_path=args.flow,
+        progress=not args.quiet,
+    )
+    print(source.describe())
+    mixed = mix(flow, scene, progress=not args.quiet, **_mix_overrides(args))
     write_dataset(mixed, out / "mixing.nc")
     if args.save_flow:
-        write_dataset(flow, out / "flow.nc")
-    save_report_figure(mixed, out / "mixing.png")
+        stored = flow.copy()
+        stored.attrs["scene"] = scene.to_toml()
+        write_dataset(stored, out / "flow.nc")
+    save_mixing_figure(mixed, out / "mixing.png")
     for line in _periodicity_lines(flow.attrs):
         print(line)
     print(_summary(mixed))
@@ -148,26 +164,41 @@ def _cmd_mix(args) -> int:
     return 0
 
 
+def _cmd_run(args) -> int:
+    from .pipeline import report_lines, run_scene
+
+    scene = _scene_from_args(args, MIX_FLAGS)
+    report = run_scene(
+        scene,
+        args.output,
+        cache=args.cache,
+        use_cache=not args.no_cache,
+        flow_path=args.flow,
+        progress=not args.quiet,
+        **_mix_overrides(args),
+    )
+    for line in report_lines(report):
+        print(line)
+    out = Path(args.output)
+    print(f"wrote {', '.join(str(out / name) for name in report['files'])}")
+    return 0
+
+
 def _cmd_flow(args) -> int:
     from . import solve_flow
     from .io import write_dataset
-    from .scene import load_scene
+    from .pipeline import check_output_folder
 
-    scene = load_scene(args.scene)
-    overrides = {k: v for k, v in (("cell", args.cell), ("revolutions", args.revolutions)) if v}
-    if args.stiffness_scaling is not None:
-        overrides["stiffness_scaling"] = args.stiffness_scaling
+    scene = _scene_from_args(args, FLOW_FLAGS)
+    out = check_output_folder(args.output)
     result = solve_flow(
         scene,
         particles=args.particles,
         checkpoint=args.checkpoint,
         progress=not args.quiet,
         wall_time=args.wall_time,
-        **overrides,
     )
     flow, particles = result if args.particles else (result, None)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
     write_dataset(flow, out / "flow.nc")
     a = flow.attrs
     print(
@@ -246,6 +277,21 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
         p.add_argument("--save-flow", action="store_true", help="also write flow.nc")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+        add_set(p)
+        p.add_argument(
+            "--cache", help="folder of cached flows (default: $BLENDXR_CACHE, else the user cache)"
+        )
+        p.add_argument(
+            "--no-cache", dest="no_cache", action="store_true", help="solve the flow anew"
+        )
+
+    def add_set(p):
+        p.add_argument(
+            "--set",
+            action="append",
+            metavar="KEY=VALUE",
+            help="set a scene value by dotted key, e.g. --set mixing.k1=0.02 (repeatable)",
+        )
 
     p = sub.add_parser("mix", help="run the mixing model on a scene's flow or a flow file")
     p.add_argument("scene", nargs="?", default=DEFAULT_MIX_SCENE)
@@ -255,7 +301,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="flow + mixing + report for a scene")
     p.add_argument("scene", nargs="?", default=DEFAULT_RUN_SCENE)
     add_mix_arguments(p)
-    p.set_defaults(func=_cmd_mix, save_flow=True)
+    p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("flow", help="compute a scene's flow with the built-in solver")
     p.add_argument("scene")
@@ -267,6 +313,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--wall-time", dest="wall_time", type=float, help="stop after S seconds")
     p.add_argument("--particles", action="store_true", help="also write particles.nc")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_set(p)
     p.set_defaults(func=_cmd_flow)
 
     p = sub.add_parser("validate", help="check netCDF files against the blendxr schemas")

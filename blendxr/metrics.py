@@ -25,7 +25,9 @@ import xarray as xr
 __all__ = [
     "SPATIAL_DIMS",
     "lacey_index",
+    "intensity_of_samples",
     "random_mixture_intensity",
+    "random_mixture_rsd",
     "rsd",
     "sample_means",
     "segregation_intensity",
@@ -333,17 +335,56 @@ def segregation_intensity(c, fill=None, cell=None, min_fill=0.95):
         I (dimensionless) with the non-spatial dims of ``c``; NaN with fewer than two
         qualified samples or when c_mean is 0 or 1.
     """
-    spatial = _check_field(c)
-    samples = sample_means(c, fill=fill, cell=cell, min_fill=min_fill)
-    mean, var = _moments(samples, samples.notnull().astype(np.float64), list(spatial))
+    _check_field(c)
+    return intensity_of_samples(sample_means(c, fill=fill, cell=cell, min_fill=min_fill))
+
+
+def intensity_of_samples(samples):
+    """Segregation intensity, eq. (25)-(28), of sample concentrations (NaN: not a sample).
+
+    Parameters
+    ----------
+    samples : xarray.DataArray
+        Sample concentrations as :func:`sample_means` returns them.
+
+    Returns
+    -------
+    xarray.DataArray
+        I over the spatial dims; NaN with fewer than two samples or c_mean 0 or 1.
+    """
+    spatial = [d for d in SPATIAL_DIMS if d in samples.dims]
+    mean, var = _moments(samples, samples.notnull().astype(np.float64), spatial)
     sigma0 = mean * (1.0 - mean)
     out = var / sigma0.where(sigma0 > 0)
     return _finish(
         out,
         "intensity",
         "segregation intensity",
-        scale_of_scrutiny=samples.attrs["scale_of_scrutiny"],
+        scale_of_scrutiny=samples.attrs.get("scale_of_scrutiny", ""),
     )
+
+
+def random_mixture_rsd(d, cell, mean, *, ndim=3, packing=0.6):
+    """RSD of a random mixture on samples of ``N`` particles: sqrt((1 - c) / (c N)).
+
+    The binomial variance c (1 - c) / N of a sample's fraction (eq. 29's N) over the mean
+    ``c``, so that RSD_R^2 = I_R (1 - c) / c; 1 / sqrt(N) for c = 0.5.
+
+    Parameters
+    ----------
+    d, cell, ndim, packing
+        As for :func:`random_mixture_intensity`.
+    mean : float
+        Mean fraction of species A, in (0, 1).
+
+    Returns
+    -------
+    float
+    """
+    if not (0.0 < mean < 1.0):
+        raise ValueError(f"mean must be in (0, 1), got {mean!r}")
+    floor = random_mixture_intensity(d, cell, ndim=ndim, packing=packing)
+    return math.sqrt(floor * (1.0 - mean) / mean)
 
 
 def random_mixture_intensity(d, cell, *, ndim=3, packing=0.6):

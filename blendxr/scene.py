@@ -9,6 +9,7 @@ as TOML text, so any result can be re-run from its own file.
 from __future__ import annotations
 
 import copy
+import difflib
 import json
 from collections.abc import Mapping
 from importlib import resources
@@ -19,7 +20,7 @@ import jsonschema
 import tomli_w
 import tomllib
 
-__all__ = ["Scene", "SceneError", "load_scene", "builtin_scenes"]
+__all__ = ["Scene", "SceneError", "load_scene", "builtin_scenes", "parse_assignment", "scene_keys"]
 
 
 class SceneError(ValueError):
@@ -52,8 +53,79 @@ def _describe(error: jsonschema.ValidationError) -> str:
     if error.validator == "enum":
         return f"{key} = {error.instance!r} is not one of {schema['enum']}"
     if error.validator == "additionalProperties":
-        return f"{key}: {error.message}"
+        return _unknown_keys(key, error)
     return f"{key}: {error.message}"
+
+
+def _unknown_keys(section: str, error: jsonschema.ValidationError) -> str:
+    """'vessel.hopper_angel_deg is not a scene key; did you mean vessel.hopper_angle_deg?'"""
+    known = sorted(error.schema.get("properties", {}))
+    unknown = sorted(set(error.instance) - set(known))
+    prefix = "" if section == "scene" else f"{section}."
+    parts = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, known, n=1)
+        hint = f"; did you mean {prefix}{close[0]}?" if close else f"; allowed: {', '.join(known)}"
+        parts.append(f"{prefix}{name} is not a scene key{hint}")
+    return "; ".join(parts)
+
+
+def scene_keys() -> list[str]:
+    """Every dotted key a scene may set (``"mixing.k1"``, ``"solver.cell"``, ...)."""
+    keys = []
+    for section, sub in _scene_schema()["properties"].items():
+        props = sub.get("properties")
+        if props is None:
+            keys.append(section)
+        else:
+            keys.extend(f"{section}.{k}" for k in props)
+    return keys
+
+
+def parse_assignment(text: str) -> tuple[str, Any]:
+    """``"mixing.k1=0.02"`` -> ``("mixing.k1", 0.02)``: the value is read as TOML.
+
+    A value that is not valid TOML (``top-bottom``) is taken as a string, so quotes are
+    needed only where TOML would read another type.
+    """
+    key, sep, value = text.partition("=")
+    key, value = key.strip(), value.strip()
+    if not sep or not key or not value:
+        raise SceneError([f"--set {text!r}: give key=value, for example mixing.k1=0.02"])
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    return key, parsed
+
+
+def _set_dotted(data: dict, values: Mapping[str, Any]) -> dict:
+    """A copy of ``data`` with dotted keys set; unknown keys refused with a did-you-mean."""
+    out = copy.deepcopy(data)
+    schema = _scene_schema()["properties"]
+    known = scene_keys()
+    faults = []
+    for key, value in values.items():
+        parts = key.split(".")
+        head = parts[0]
+        props = schema.get(head, {}).get("properties")
+        free = head in schema and (props is None or (len(parts) > 2 and parts[1] == "parameters"))
+        if key not in known and not free:
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f"did you mean {close[0]}?" if close else "see `blendxr scene NAME`"
+            faults.append(f"{key} is not a scene key; {hint}")
+            continue
+        target = out
+        for part in parts[:-1]:
+            target = target.setdefault(part, {})
+            if not isinstance(target, dict):
+                faults.append(f"{key}: {part} is not a section")
+                break
+        else:
+            target[parts[-1]] = value
+    if faults:
+        raise SceneError(faults)
+    return out
 
 
 def _apply_defaults(data: dict, schema: dict) -> dict:
@@ -91,6 +163,7 @@ class Scene(Mapping):
         )
         if faults:
             raise SceneError(faults)
+        self._raw = raw  # as given: overrides are applied to it, then defaults again
         self._data = _apply_defaults(raw, schema)
         self._check_relations()
 
@@ -148,6 +221,27 @@ class Scene(Mapping):
                 data[section] = values
         return Scene(data)
 
+    def with_values(self, values: Mapping[str, Any] | None = None, **dotted: Any) -> Scene:
+        """A new scene with values set by dotted key, validated as a whole.
+
+        Parameters
+        ----------
+        values : mapping, optional
+            ``{"mixing.k1": 0.02, "flow.cell": 0.01}``.
+        **dotted
+            The same as keywords: ``scene.with_values(**{"mixing.k1": 0.02})``.
+
+        Raises
+        ------
+        SceneError
+            An unknown key (with the nearest known one) or a value out of its range.
+        """
+        merged = {**(values or {}), **dotted}
+        if not merged:
+            return self
+        raw = self._raw if self._raw is not None else self._data
+        return Scene(_set_dotted(raw, merged))
+
     def __repr__(self) -> str:
         return f"Scene({self.name!r})"
 
@@ -158,7 +252,7 @@ def builtin_scenes() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
-def load_scene(scene: str | Path | Mapping | Scene) -> Scene:
+def load_scene(scene: str | Path | Mapping | Scene, values=None, **dotted: Any) -> Scene:
     """Load a scene by built-in name, from a TOML file, or from a mapping.
 
     Parameters
@@ -166,6 +260,10 @@ def load_scene(scene: str | Path | Mapping | Scene) -> Scene:
     scene : str, path, mapping or Scene
         A built-in name (see :func:`builtin_scenes`), a path to a ``.toml`` file, TOML text
         taken from a dataset's ``scene`` attribute, or nested dictionaries.
+    values : mapping, optional
+        Values to set by dotted key (``{"mixing.k1": 0.02}``), as ``--set`` does.
+    **dotted
+        The same as keywords: ``load_scene("tote-small", **{"mixing.k1": 0.02})``.
 
     Returns
     -------
@@ -177,9 +275,9 @@ def load_scene(scene: str | Path | Mapping | Scene) -> Scene:
         If the scene is invalid or cannot be found; the message names the key.
     """
     if isinstance(scene, Scene):
-        return scene
+        return scene.with_values(values, **dotted)
     if isinstance(scene, Mapping):
-        return Scene(scene)
+        return Scene(scene).with_values(values, **dotted)
     text = None
     if isinstance(scene, str) and "\n" in scene:
         text = scene
@@ -201,4 +299,4 @@ def load_scene(scene: str | Path | Mapping | Scene) -> Scene:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise SceneError([f"scene TOML: {err}"]) from None
-    return Scene(data)
+    return Scene(data).with_values(values, **dotted)

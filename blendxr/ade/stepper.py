@@ -77,6 +77,9 @@ class MixSettings:
     max_steps: int | None = None
     check_every: int = 25
     refresh_per_phase: int | None = 2
+    stop_rsd: float | str | None = None
+    stop_intensity: float | str | None = None
+    min_intensity_cells: int = 10
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -111,6 +114,16 @@ class MixSettings:
             values = np.atleast_1d(np.asarray(self.diffusivity, float))
             if not np.all(np.isfinite(values)) or np.any(values < 0):
                 faults.append(f"diffusivity = {self.diffusivity!r}: needs finite values >= 0")
+        for name in ("stop_rsd", "stop_intensity"):
+            value = getattr(self, name)
+            if value is None or value == "floor":
+                continue
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                faults.append(f"{name} = {value!r}: needs a number > 0 or 'floor'")
+        if not (isinstance(self.min_intensity_cells, int) and self.min_intensity_cells >= 2):
+            faults.append(
+                f"min_intensity_cells = {self.min_intensity_cells!r}: needs an integer >= 2"
+            )
         if faults:
             raise ValueError("; ".join(faults))
         if self.k2 is None:
@@ -127,6 +140,8 @@ class MixSettings:
             "wall_time",
             "max_steps",
             "memory_budget_mb",
+            "stop_rsd",
+            "stop_intensity",
             "extra",
         ):
             keep.pop(name)
@@ -156,6 +171,9 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
             packing=material["packing_fraction"],
             safety=numerics["safety"],
             memory_budget_mb=numerics["memory_budget_mb"],
+            stop_rsd=mixing.get("stop_rsd"),
+            stop_intensity=mixing.get("stop_intensity"),
+            min_intensity_cells=mixing["min_intensity_cells"],
         )
     known = set(MixSettings.__dataclass_fields__) - {"extra"}
     unknown = sorted(set(overrides) - known)
@@ -388,11 +406,43 @@ class _Run:
             "time": [],
             "rsd": [],
             "intensity": [],
+            "intensity_cells": [],
             "mass_a": [],
             "fill_mismatch": [],
         }
         self.snapshots: dict[float, np.ndarray] = {}
         self.sampling_cell = self._sampling_cell()
+        self.mean_c = None  # the mean of c, from the first record (it is conserved)
+
+    # --- random-mixture floors and the stop rule ----------------------------
+    def floors(self) -> tuple[float, float]:
+        """(I_R, RSD_R) of a random mixture on the sampling cells (NaN when undefined)."""
+        s = self.settings
+        cell = self.sampling_cell
+        if cell is None or cell < s.d or self.mean_c is None or not 0 < self.mean_c < 1:
+            return math.nan, math.nan
+        intensity = metrics.random_mixture_intensity(s.d, cell, ndim=self.ndim, packing=s.packing)
+        spread = metrics.random_mixture_rsd(
+            s.d, cell, self.mean_c, ndim=self.ndim, packing=s.packing
+        )
+        return intensity, spread
+
+    def stop_reason(self) -> str | None:
+        """Why the run may stop now (a stop rule met at the last record), or None."""
+        floor_i, floor_rsd = self.floors()
+        rules = (
+            ("rsd", self.settings.stop_rsd, floor_rsd),
+            ("intensity", self.settings.stop_intensity, floor_i),
+        )
+        for name, level, floor in rules:
+            if level is None:
+                continue
+            target = floor if level == "floor" else float(level)
+            value = self.records[name][-1]
+            if math.isfinite(target) and math.isfinite(value) and value <= target:
+                what = "the random-mixture floor " if level == "floor" else ""
+                return f"{name} {value:.4g} <= {what}{target:.4g}"
+        return None
 
     # --- initial state ----------------------------------------------------
     def initialise(self) -> None:
@@ -443,14 +493,26 @@ class _Run:
         rec = self.records
         rec["time"].append(self.t)
         rec["rsd"].append(float(metrics.rsd(da, fill=w)))
+        value, count = math.nan, 0
         if self.sampling_cell is not None:
+            # Sampling cells qualify by the flow's fill (the paper's EVF), not by the
+            # carried material, which the scheme smears at the free surface over many
+            # revolutions until few cells hold 95 % of it.
+            bed = np.where(np.isfinite(c), self.current_fill(), 0.0)
+            bed = xr.DataArray(bed, dims=da.dims, coords=da.coords)
             try:
-                value = float(metrics.segregation_intensity(da, fill=w, cell=self.sampling_cell))
-            except ValueError:
-                value = math.nan
-        else:
-            value = math.nan
+                samples = metrics.sample_means(da, fill=bed, cell=self.sampling_cell)
+            except ValueError:  # a sampling cell larger than the grid
+                samples = None
+            if samples is not None:
+                count = int(samples.notnull().sum())
+                if count >= self.settings.min_intensity_cells:
+                    value = float(metrics.intensity_of_samples(samples))
         rec["intensity"].append(value)
+        rec["intensity_cells"].append(float(count))
+        if self.mean_c is None:
+            total = float(weight.sum())
+            self.mean_c = float(np.nansum(c * weight)) / total if total > 0 else math.nan
         if self.settings.scheme == "finite-volume":
             species = float(self.state.q.sum())  # exactly what the scheme conserves
         else:
@@ -467,6 +529,12 @@ class _Run:
         for r in self.snapshot_revs:
             if abs(r - rev) < 1e-9 and r not in self.snapshots:
                 self.snapshots[r] = c.copy()
+
+    def keep_snapshot(self) -> None:
+        """Keep c now as a snapshot (a run stopped early ends with its last state)."""
+        rev = self.t / self.period
+        if rev not in self.snapshots:
+            self.snapshots[rev] = self.concentration_and_weight()[0]
 
     # --- stepping ---------------------------------------------------------
     def _phase_position(self, t: float) -> float:
@@ -769,6 +837,11 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
             done = rev
             if rev in outputs or rev in snaps:
                 run.record()
+                reason = run.stop_reason()
+                if reason is not None:
+                    stopped_by = reason
+                    run.keep_snapshot()
+                    break
             bar.update(done - bar.n)
             bar.set_postfix_str(f"rsd {run.records['rsd'][-1]:.3f}")
             if checkpoint is not None and rev >= next_checkpoint - 1e-9:
@@ -826,11 +899,16 @@ def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset
         "fill_mismatch_max": float(np.max(rec["fill_mismatch"])) if rec["fill_mismatch"] else 0.0,
         "sampling_cell": run.sampling_cell if run.sampling_cell is not None else 0.0,
         "period_s": run.period,
+        "min_intensity_cells": s.min_intensity_cells,
     }
+    floor_i, floor_rsd = run.floors()
+    attrs["random_mixture_intensity"] = floor_i
+    attrs["random_mixture_rsd"] = floor_rsd
+    attrs["mean_c"] = run.mean_c if run.mean_c is not None else math.nan
     kwargs = {}
     if run.ndim == 3:
         kwargs["z"] = coords["z"]
-    return mixing_dataset(
+    result = mixing_dataset(
         coords["x"],
         coords["y"],
         time=times,
@@ -845,3 +923,13 @@ def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset
         attrs=attrs,
         **kwargs,
     )
+    result["intensity_cells"] = xr.DataArray(
+        np.asarray(rec["intensity_cells"], np.int32),
+        dims="time",
+        attrs={
+            "units": "1",
+            "long_name": "qualified sampling cells of the segregation intensity",
+            "comment": f"intensity is NaN where fewer than {s.min_intensity_cells} qualify",
+        },
+    )
+    return result
