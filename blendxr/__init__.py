@@ -17,6 +17,7 @@ from .metrics import (
     thief_rsd,
     thief_samples,
 )
+from .pipeline import flow_key, revolutions_to_level, run_scene, scene_flow
 from .scene import Scene, SceneError, builtin_scenes, load_scene
 from .schema import SchemaError, validate
 
@@ -29,6 +30,7 @@ __all__ = [
     "SceneError",
     "SchemaError",
     "builtin_scenes",
+    "flow_key",
     "flows",
     "lacey_index",
     "load_scene",
@@ -36,7 +38,10 @@ __all__ = [
     "open_flow",
     "open_mixing",
     "random_mixture_intensity",
+    "revolutions_to_level",
     "rsd",
+    "run_scene",
+    "scene_flow",
     "segregation_intensity",
     "solve_flow",
     "thief_rsd",

@@ -247,9 +247,7 @@ def _cmd_scenes(args) -> int:
 
 
 def _cmd_scene(args) -> int:
-    from .scene import load_scene
-
-    scene = load_scene(args.scene)
+    scene = _scene_from_args(args, {})
     print(json.dumps(scene.to_dict(), indent=2) if args.json else scene.to_toml())
     return 0
 
@@ -330,6 +328,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("scene", help="print a scene with its defaults filled in")
     p.add_argument("scene")
     p.add_argument("--json", action="store_true")
+    add_set(p)
     p.set_defaults(func=_cmd_scene)
     return parser
 

@@ -239,8 +239,15 @@ class Scene(Mapping):
         merged = {**(values or {}), **dotted}
         if not merged:
             return self
-        raw = self._raw if self._raw is not None else self._data
-        return Scene(_set_dotted(raw, merged))
+        raw = _set_dotted(self._raw, merged)
+        mixing = raw.get("mixing", {})
+        if "mixing.revolutions" in merged and "mixing.snapshots" not in merged:
+            # the scene's snapshots were planned for its own length: keep those that fit
+            total = mixing["revolutions"]
+            if isinstance(total, int | float) and mixing.get("snapshots"):
+                kept = {r for r in mixing["snapshots"] if isinstance(r, int | float) and r <= total}
+                mixing["snapshots"] = sorted(kept | {total})
+        return Scene(raw)
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r})"

@@ -1,0 +1,278 @@
+"""The main job: scene values by dotted key, the flow cache, the report, the stop rule."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import blendxr as bx
+from blendxr import pipeline
+from blendxr.cli import main
+from blendxr.scene import parse_assignment
+
+# --------------------------------------------------------------------- dotted keys
+
+
+@pytest.mark.parametrize(
+    "text, key, value",
+    [
+        ("mixing.k1=0.02", "mixing.k1", 0.02),
+        ("numerics.cells=64", "numerics.cells", 64),
+        ("mixing.loading=side-side", "mixing.loading", "side-side"),
+        ("numerics.cells=[40, 30]", "numerics.cells", [40, 30]),
+        ("solver.lost_contact=false", "solver.lost_contact", False),
+        ("mixing.stop_rsd=floor", "mixing.stop_rsd", "floor"),
+    ],
+)
+def test_assignments_read_their_value_as_toml(text, key, value):
+    assert parse_assignment(text) == (key, value)
+
+
+def test_load_scene_sets_values_by_dotted_key_and_keeps_the_rest():
+    base = bx.load_scene("tote-small")
+    scene = bx.load_scene("tote-small", **{"mixing.k1": 0.02, "fill.fraction": 0.6})
+    assert scene["mixing"]["k1"] == 0.02 and scene["fill"]["fraction"] == 0.6
+    assert scene["flow"] == base["flow"] and scene["mixing"]["loading"] == "top-bottom"
+    # a default-filled section is not frozen: a value set later still takes effect
+    assert scene.with_values({"mixing.k1": 0.0})["mixing"]["k1"] == 0.0
+
+
+@pytest.mark.parametrize(
+    "values, words",
+    [
+        ({"mixing.k11": 0.1}, ["mixing.k11", "did you mean mixing.k1"]),
+        ({"vessel.hopper_angel_deg": 45}, ["hopper_angel_deg", "hopper_angle_deg"]),
+        ({"mixing.k1": -1}, ["mixing.k1", ">= 0"]),
+        ({"numerics.scheme": "upwind"}, ["numerics.scheme", "finite-volume"]),
+        ({"nosection.k1": 1}, ["nosection.k1", "not a scene key"]),
+    ],
+)
+def test_a_wrong_key_or_value_is_refused_naming_it(values, words):
+    with pytest.raises(bx.SceneError) as err:
+        bx.load_scene("tote-small", values)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_a_typo_in_a_scene_file_is_refused(tmp_path):
+    path = tmp_path / "typo.toml"
+    path.write_text('name = "typo"\n[vessel]\nkind = "tote"\nhopper_angel_deg = 45\n')
+    with pytest.raises(bx.SceneError, match="did you mean vessel.hopper_angle_deg"):
+        bx.load_scene(path)
+
+
+def test_set_on_the_shell_changes_the_scene_and_refuses_bad_keys(capsys, tmp_path):
+    assert main(["scene", "tote-small", "--set", "mixing.k1=0.03", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mixing"]["k1"] == 0.03
+    status = main(["mix", "swirl-2d", "-o", str(tmp_path), "-q", "--set", "mixing.loadng=axial"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and len(err.splitlines()) == 1 and "did you mean mixing.loading" in err
+
+
+def test_a_flag_given_as_zero_is_a_value_and_is_validated(capsys, tmp_path):
+    status = main(["flow", "drum-2d-mpm", "-o", str(tmp_path), "-q", "--cell", "0"])
+    err = capsys.readouterr().err
+    assert status == 2 and "solver.cell" in err
+    assert not (tmp_path / "flow.nc").exists()
+
+
+# --------------------------------------------------------------------- cache key
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("operation.rpm", 12.0),
+        ("vessel.width", 0.2),
+        ("material.friction_angle_deg", 30.0),
+        ("fill.fraction", 0.5),
+        ("flow.cell", 0.025),
+        ("flow.phases", 6),
+        ("solver.stiffness_scaling", 50.0),
+    ],
+)
+def test_a_flow_input_changes_the_cache_key(key, value):
+    assert pipeline.flow_key(bx.load_scene("tote-small", {key: value})) != pipeline.flow_key(
+        "tote-small"
+    )
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("mixing.k1", 0.03),
+        ("mixing.loading", "side-side"),
+        ("mixing.revolutions", 3),
+        ("numerics.cells", 40),
+        ("numerics.scheme", "lax-wendroff"),
+        ("name", "another-name"),
+        ("description", "another text"),
+    ],
+)
+def test_a_mixing_input_keeps_the_cache_key(key, value):
+    assert pipeline.flow_key(bx.load_scene("tote-small", {key: value})) == pipeline.flow_key(
+        "tote-small"
+    )
+
+
+def test_the_paper_cases_of_one_fill_share_their_flow_and_the_version_is_in_the_key(
+    monkeypatch,
+):
+    assert pipeline.flow_key("tote-40-top-bottom") == pipeline.flow_key("tote-40-side-side")
+    assert pipeline.flow_key("tote-40-top-bottom") != pipeline.flow_key("tote-60-top-bottom")
+    before = pipeline.flow_key("tote-small")
+    monkeypatch.setattr(pipeline, "__version__", "0.0.0-other")
+    assert pipeline.flow_key("tote-small") != before
+
+
+def test_the_cache_folder_follows_argument_then_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("BLENDXR_CACHE", str(tmp_path / "env"))
+    assert pipeline.cache_folder() == tmp_path / "env"
+    assert pipeline.cache_folder(tmp_path / "arg") == tmp_path / "arg"
+    monkeypatch.delenv("BLENDXR_CACHE")
+    assert "blendxr" in str(pipeline.cache_folder())
+
+
+# --------------------------------------------------------------------- report
+
+
+def test_revolutions_to_a_level_is_exact_on_an_exponential_decay():
+    rate = 0.7
+    rev = np.arange(0, 10.01, 0.25)
+    rsd = np.exp(-rate * rev)
+    for level in (0.2, 0.1, 0.05):
+        got = pipeline.revolutions_to_level(rev, rsd, level)
+        assert got == pytest.approx(math.log(1 / level) / rate, rel=1e-12)
+
+
+def test_revolutions_to_a_level_not_reached_first_value_and_gaps():
+    rev = np.array([0.0, 1.0, 2.0, 3.0])
+    assert pipeline.revolutions_to_level(rev, [1.0, 0.5, 0.3, 0.2], 0.1) is None
+    assert pipeline.revolutions_to_level(rev, [0.05, 0.04, 0.03, 0.02], 0.1) == 0.0
+    # a NaN record is skipped: the crossing lies between revolutions 1 and 3
+    got = pipeline.revolutions_to_level(rev, [1.0, 0.4, np.nan, 0.1], 0.2)
+    assert got == pytest.approx(1 + 2 * math.log(2) / math.log(4))
+    # the first crossing counts, not a later one after a rise
+    assert pipeline.revolutions_to_level(rev, [1.0, 0.1, 0.3, 0.05], 0.1) == 1.0
+
+
+def _small_drum_scene(**values):
+    base = {
+        "flow.parameters.cells": 32,
+        "numerics.cells": 36,
+        "mixing.revolutions": 3,
+        "mixing.output_every": 0.25,
+    }
+    return bx.load_scene("drum-2d", {**base, **values})
+
+
+def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
+    scene = _small_drum_scene(**{"mixing.stop_rsd": 0.3})
+    mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)
+    rsd = mixed["rsd"].values
+    assert rsd[-1] <= 0.3 and np.all(rsd[:-1] > 0.3)
+    assert mixed.attrs["stopped_by"].startswith("rsd")
+    assert mixed["revolution"].values[-1] < 3
+    # the run ends with a snapshot of its last state
+    assert mixed["snapshot_revolution"].values[-1] == pytest.approx(
+        mixed["revolution"].values[-1]
+    )
+
+
+def test_the_floor_stop_uses_the_random_mixture_of_the_sampling_cells():
+    scene = _small_drum_scene(**{"mixing.stop_intensity": "floor", "mixing.revolutions": 6})
+    mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)
+    cell = mixed.attrs["sampling_cell"]
+    floor = 1.0 / (cell / scene["material"]["particle_diameter"]) ** 2  # 2-D: N = (cell/d)^2
+    assert mixed.attrs["random_mixture_intensity"] == pytest.approx(floor, rel=1e-12)
+    intensity = mixed["intensity"].values
+    assert intensity[-1] <= floor and np.all(intensity[:-1] > floor)
+    assert "floor" in mixed.attrs["stopped_by"]
+    mean = mixed.attrs["mean_c"]
+    assert mixed.attrs["random_mixture_rsd"] == pytest.approx(
+        math.sqrt(floor * (1 - mean) / mean), rel=1e-12
+    )
+
+
+def test_sampling_cells_qualify_by_the_flows_fill():
+    scene = _small_drum_scene(**{"mixing.revolutions": 2})
+    flow = bx.scene_flow(scene)[0]
+    mixed = bx.mix(flow, scene, progress=False, revolutions=2)
+    # the steady flow's fill on the mixing grid, reduced independently: its sampling cells
+    # holding >= 95 % material are the ones the run may count
+    from blendxr.ade.grid import AdeGrid
+    from blendxr.ade.phases import CyclicPhaseReader
+
+    coords = [flow[d].values for d in ("x", "y")]
+    h = [c[1] - c[0] for c in coords]
+    grid = AdeGrid.covering(
+        [c[0] - 0.5 * s for c, s in zip(coords, h, strict=True)],
+        [c[-1] + 0.5 * s for c, s in zip(coords, h, strict=True)],
+        scene["numerics"]["cells"],
+    )
+    reader = CyclicPhaseReader(flow, grid, None, memory_budget=2**28)
+    fill = reader.get(0).fill
+    reader.close()
+    import xarray as xr
+
+    da = xr.DataArray(fill, dims=("x", "y"), coords=dict(zip(("x", "y"), grid.coords, strict=True)))
+    qualified = bx.metrics.sample_means(da, fill=da, cell=mixed.attrs["sampling_cell"])
+    counts = mixed["intensity_cells"].values
+    assert counts.max() <= int(qualified.notnull().sum())
+    # the steady bed keeps its sampling cells: the count does not decay with the revolutions
+    assert counts.min() >= 0.9 * counts.max()
+
+
+def test_run_writes_the_report_and_reuses_the_cached_flow(tmp_path):
+    cache = tmp_path / "cache"
+    values = {"mixing.revolutions": 1, "numerics.cells": 32}
+    first = pipeline.run_scene(
+        bx.load_scene("drum-2d-mpm", values), tmp_path / "a", cache=cache, progress=False
+    )
+    assert first["flow_cache"]["state"] == "miss"
+    for name in ("flow.nc", "mixing.nc", "report.json", "mixing.png", "snapshots.png"):
+        assert (tmp_path / "a" / name).stat().st_size > 0
+    assert not list((cache / "flows").glob("*.checkpoint"))
+    again = pipeline.run_scene(
+        bx.load_scene("drum-2d-mpm", {**values, "mixing.k1": 0.05}),
+        tmp_path / "b",
+        cache=cache,
+        progress=False,
+    )
+    assert again["flow_cache"]["state"] == "hit"
+    assert again["flow_cache"]["key"] == first["flow_cache"]["key"]
+    other = pipeline.run_scene(
+        bx.load_scene("drum-2d-mpm", {**values, "operation.rpm": 25.0}),
+        tmp_path / "c",
+        cache=cache,
+        progress=False,
+    )
+    assert other["flow_cache"]["state"] == "miss"
+    # the report agrees with the files it sits beside
+    report = json.loads((tmp_path / "b" / "report.json").read_text())
+    mixed = bx.open_mixing(tmp_path / "b" / "mixing.nc")
+    assert report["mixing"]["k1"] == 0.05
+    assert report["mixing"]["final_rsd"] == pytest.approx(float(mixed["rsd"][-1]), rel=1e-6)
+    for level, r in report["mixing"]["revolutions_to_rsd"].items():
+        assert r == pipeline.revolutions_to_level(
+            mixed["revolution"].values, mixed["rsd"].values, float(level)
+        )
+    flow = bx.open_flow(tmp_path / "b" / "flow.nc")
+    assert report["flow"]["fill_share"] == pytest.approx(
+        flow.attrs["fill_volume_m3"] / flow.attrs["material_volume_m3"]
+    )
+    for stage in ("flow", "mixing", "report"):
+        assert report["stages"][stage]["wall_s"] >= 0
+        assert report["stages"][stage]["peak_memory_mb"] > 0
+
+
+def test_run_refuses_an_output_that_is_a_file_before_any_work(tmp_path, capsys):
+    target = tmp_path / "taken"
+    target.write_text("x")
+    status = main(["run", "drum-2d-mpm", "-o", str(target), "-q", "--cache", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert status == 2 and "existing file" in err
+    assert not (tmp_path / "flows").exists()
