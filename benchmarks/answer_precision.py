@@ -1,0 +1,318 @@
+"""The error of the answer against its cost: revolutions to a uniform blend.
+
+A user asks how many revolutions a blend needs to reach RSD 0.1 or 0.05. This benchmark
+measures how far that answer, and the RSD curve behind it, moves with every choice the
+user (or a scene) makes: the flow cell, the ADE cells, the scheme, the stiffness scaling
+(an unscaled run at a coarse cell), rate-independent Mohr-Coulomb against the optional
+mu(I) friction, the revolution of the flow that is repeated (2 against 3, and an average
+over three), and the crowding relief (the share of the bed the flow's fill clips). Each
+case records its wall time (flow solve and mixing separately; a cached flow keeps the
+time of its solve), so the table is a work-precision table.
+
+Groups: each group varies one choice of a base scene; its reference is the group's
+finest (or most faithful) member, named in ``GROUPS``. The error of a case is
+``|dN|`` (revolutions to RSD 0.1 and 0.05 against the reference's) and the largest
+relative difference of its RSD curve from the reference's over the revolutions run.
+
+Bases: ``tote-small`` (the quick default: 20 mm flow cell, E/100, 60 ADE cells) and the
+paper's four Tote cases (``tote-40-top-bottom`` ...: 7.5 mm, E/10, 100 ADE cells).
+Flows are cached (``$BLENDXR_CACHE``, default ``runs/cache`` in the checkout), so the
+top-bottom and side-side cases of one fill solve their flow once, and a rerun of a case
+re-solves nothing.
+
+Run: ``python benchmarks/answer_precision.py [--case NAME ...]``; writes
+``benchmarks/results/answer_precision.{json,md}`` and ``answer_precision.png`` (the RSD
+curves of each group, and error against cost). Cases are listed with ``--help``.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+
+import math  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from _common import REPO, RESULTS, machine_line, run_cases, table  # noqa: E402
+
+NAME = "answer_precision"
+LEVELS = (0.2, 0.1, 0.05)
+#: Every case mixes until its RSD is below the last level (or this many revolutions), so
+#: that N(0.05) is an interpolation, not "not reached".
+STUDY_MIXING = {"mixing.revolutions": 40, "mixing.stop_rsd": 0.04}
+MU_I = {"material.friction_angle_limit_deg": 37.7}  # docs/flow.md: the drum's mu(I) runs
+
+#: group -> (base scene, {member: dotted overrides}, reference member)
+GROUPS = {
+    "small_flow_cell": (
+        "tote-small",
+        {
+            "20mm": {},
+            "15mm": {"flow.cell": 0.015},
+            "12.5mm": {"flow.cell": 0.0125},
+            "10mm": {"flow.cell": 0.01},
+            "7.5mm": {"flow.cell": 0.0075},
+        },
+        "7.5mm",
+    ),
+    "small_ade_cells": (
+        "tote-small",
+        {
+            "40": {"numerics.cells": 40},
+            "60": {},
+            "100": {"numerics.cells": 100},
+            "150": {"numerics.cells": 150},
+        },
+        "150",
+    ),
+    "small_scheme": (
+        "tote-small",
+        {
+            "finite-volume": {},
+            "lax-wendroff": {"numerics.scheme": "lax-wendroff"},
+            "finite-volume_100": {"numerics.cells": 100},
+            "lax-wendroff_100": {"numerics.cells": 100, "numerics.scheme": "lax-wendroff"},
+        },
+        "finite-volume_100",
+    ),
+    "small_stiffness": (
+        "tote-small",
+        {
+            "E/100": {},
+            "E/10": {"solver.stiffness_scaling": 10.0},
+            "E": {"solver.stiffness_scaling": 1.0},
+        },
+        "E",
+    ),
+    "small_rheology": (
+        "tote-small",
+        {"mohr-coulomb": {}, "mu(I)": MU_I},
+        "mohr-coulomb",
+    ),
+    "small_revolution": (
+        "tote-small",
+        {
+            "rev2": {},
+            "rev3": {"solver.revolutions": 3},
+            "avg3": {
+                "solver.revolutions": 6,
+                "solver.average_revolutions": 3,
+                "material.dilation_angle_deg": 0.0,
+            },
+            "rev3_psi0": {"solver.revolutions": 3, "material.dilation_angle_deg": 0.0},
+        },
+        "avg3",
+    ),
+    "small_crowding": (
+        "tote-small",
+        {"off": {}, "relief": {"solver.crowding_relief": 0.001}},
+        "off",
+    ),
+}
+for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
+              "tote-60-side-side"):  # fmt: skip
+    GROUPS[f"{_case}_flow_cell"] = (
+        _case,
+        {
+            "20mm": {"flow.cell": 0.02},
+            "15mm": {"flow.cell": 0.015},
+            "10mm": {"flow.cell": 0.01},
+            "7.5mm": {},
+        },
+        "7.5mm",
+    )
+    GROUPS[f"{_case}_ade_cells"] = (
+        _case,
+        {"60": {"numerics.cells": 60}, "100": {}, "150": {"numerics.cells": 150}},
+        "150",
+    )
+
+CASES = {
+    f"{group}:{member}": (base, values)
+    for group, (base, members, _) in GROUPS.items()
+    for member, values in members.items()
+}
+
+
+def _cache() -> Path:
+    return Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
+
+
+def run_case(case: str) -> dict:
+    """Flow (cached) and mixing of one case; the answer and what it cost."""
+    import blendxr as bx
+    from blendxr import pipeline
+
+    base, values = CASES[case]
+    scene = bx.load_scene(base, {**STUDY_MIXING, **values})
+    stages = pipeline.Stages()
+    with stages.measure("flow"):
+        flow, source = pipeline.scene_flow(scene, cache=_cache(), progress=False)
+    with stages.measure("mixing"):
+        mixed = bx.mix(flow, scene, progress=False)
+    summary = pipeline.mixing_summary(mixed, LEVELS)
+    flow_info = pipeline.flow_summary(flow)
+    return {
+        "base": base,
+        "values": values,
+        "flow_key": source.key,
+        "flow_wall_s": float(flow.attrs.get("wall_time_s", math.nan)),
+        "flow_cache": source.cache,
+        "mix_wall_s": stages.records["mixing"]["wall_s"],
+        "mix_peak_mb": stages.records["mixing"]["peak_memory_mb"],
+        "revolutions_to_rsd": summary["revolutions_to_rsd"],
+        "final_rsd": summary["final_rsd"],
+        "final_intensity": summary["final_intensity"],
+        "random_mixture_rsd": summary["random_mixture_rsd"],
+        "periodicity_eq30": flow_info.get("periodicity_eq30"),
+        "fill_share": flow_info.get("fill_share"),
+        "revolution": mixed["revolution"].values.tolist(),
+        "rsd": mixed["rsd"].values.tolist(),
+        "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def _errors(result: dict, reference: dict | None) -> dict:
+    """|dN| at each level and the largest relative RSD difference from the reference."""
+    if reference is None:
+        return {}
+    out = {}
+    for level in LEVELS:
+        key = f"{level:g}"
+        a, b = result["revolutions_to_rsd"].get(key), reference["revolutions_to_rsd"].get(key)
+        out[key] = abs(a - b) if a is not None and b is not None else None
+    ra, rb = np.asarray(result["revolution"]), np.asarray(reference["revolution"])
+    common = np.intersect1d(np.round(ra, 9), np.round(rb, 9))
+    if len(common):
+        va = np.interp(common, ra, result["rsd"])
+        vb = np.interp(common, rb, reference["rsd"])
+        out["rsd_curve"] = float(np.max(np.abs(va / vb - 1.0)))
+    return out
+
+
+def _fmt_rev(value) -> str:
+    return "not reached" if value is None else f"{value:.2f}"
+
+
+def _fmt_err(value) -> str:
+    return "" if value is None else f"{value:.2f}"
+
+
+def report(cases: dict, machine: dict) -> str:
+    lines = [
+        "# The error of the answer against its cost",
+        "",
+        f"Machine: {machine_line(machine)}. `benchmarks/answer_precision.py`.",
+        "",
+        "N(x): revolutions to RSD x (log-linear between records every 0.25 revolution); "
+        "|dN|: against the group's reference (marked *); curve: the largest relative "
+        "difference of the RSD curve from the reference's. Flow s: the solve's wall time "
+        "(a cached flow keeps it); mix s: the mixing run.",
+        "",
+    ]
+    for group, (base, members, ref) in GROUPS.items():
+        done = {m: cases.get(f"{group}:{m}") for m in members}
+        if not any(done.values()):
+            continue
+        reference = done.get(ref)
+        rows = []
+        for member, result in done.items():
+            if result is None:
+                continue
+            err = _errors(result, reference) if member != ref else {}
+            p = result.get("periodicity_eq30") or {}
+            rows.append(
+                [
+                    member + (" *" if member == ref else ""),
+                    _fmt_rev(result["revolutions_to_rsd"]["0.1"]),
+                    _fmt_rev(result["revolutions_to_rsd"]["0.05"]),
+                    _fmt_err(err.get("0.1")),
+                    _fmt_err(err.get("0.05")),
+                    "" if "rsd_curve" not in err else f"{err['rsd_curve']:.1%}",
+                    f"{result['final_rsd']:.4f}",
+                    " / ".join(f"{v:.0%}" for v in p.values()) if p else "",
+                    "" if result.get("fill_share") is None else f"{result['fill_share']:.1%}",
+                    f"{result['flow_wall_s']:.0f}",
+                    f"{result['mix_wall_s']:.0f}",
+                ]
+            )
+        lines += [
+            f"## {group} (base `{base}`)",
+            "",
+            table(
+                [
+                    "case",
+                    "N(0.1)",
+                    "N(0.05)",
+                    "|dN| 0.1",
+                    "|dN| 0.05",
+                    "curve",
+                    "final RSD",
+                    "eq. 30",
+                    "fill",
+                    "flow s",
+                    "mix s",
+                ],  # fmt: skip
+                rows,
+            ),
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def summary(case: str, result: dict) -> str:
+    n = result["revolutions_to_rsd"]
+    return (
+        f"{case}: N(0.1) {_fmt_rev(n['0.1'])}, N(0.05) {_fmt_rev(n['0.05'])}, final RSD "
+        f"{result['final_rsd']:.4f}; flow {result['flow_wall_s']:.0f} s "
+        f"({result['flow_cache']}), mix {result['mix_wall_s']:.0f} s"
+    )
+
+
+def figure(cases: dict) -> Path:
+    """RSD curves of each group with results, one panel a group."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = [g for g, (_, members, _) in GROUPS.items()
+              if any(f"{g}:{m}" in cases for m in members)]  # fmt: skip
+    if not groups:
+        return RESULTS / f"{NAME}.png"
+    cols = min(3, len(groups))
+    rows = math.ceil(len(groups) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    for ax, group in zip(axes.flat, groups, strict=False):
+        _, members, ref = GROUPS[group]
+        for member in members:
+            result = cases.get(f"{group}:{member}")
+            if result is None:
+                continue
+            cost = result["flow_wall_s"] + result["mix_wall_s"]
+            width = 2 if member == ref else 1
+            ax.semilogy(result["revolution"], result["rsd"], lw=width,
+                        label=f"{member} ({cost:.0f} s)")  # fmt: skip
+        ax.axhline(0.05, ls=":", color="tab:red", lw=1)
+        ax.set_title(group, fontsize=9)
+        ax.set_xlabel("revolutions")
+        ax.set_ylabel("RSD")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(groups) :]:
+        ax.axis("off")
+    fig.tight_layout()
+    import sys
+
+    sys.path.insert(0, str(REPO))
+    from blendxr.plot import save_figure
+
+    return save_figure(fig, RESULTS / f"{NAME}.png")
+
+
+if __name__ == "__main__":
+    payload = run_cases(NAME, __doc__.splitlines()[0], CASES, run_case, report, summary)
+    figure(payload["cases"])
