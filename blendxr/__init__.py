@@ -20,6 +20,7 @@ from .metrics import (
 from .pipeline import flow_key, revolutions_to_level, run_scene, scene_flow
 from .scene import Scene, SceneError, builtin_scenes, load_scene
 from .schema import SchemaError, validate
+from .studies import calibrate_k1, read_curve
 
 __all__ = [
     "__version__",
@@ -30,6 +31,7 @@ __all__ = [
     "SceneError",
     "SchemaError",
     "builtin_scenes",
+    "calibrate_k1",
     "flow_key",
     "flows",
     "lacey_index",
@@ -38,6 +40,7 @@ __all__ = [
     "open_flow",
     "open_mixing",
     "random_mixture_intensity",
+    "read_curve",
     "revolutions_to_level",
     "rsd",
     "run_scene",

@@ -216,6 +216,42 @@ def _cmd_flow(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    from .pipeline import check_output_folder
+    from .plot import save_figure
+    from .studies import calibrate_k1, calibration_figure
+
+    scene = _scene_from_args(args, {})
+    out = check_output_folder(args.output)
+    grid = None
+    if args.k1:
+        try:
+            grid = [float(v) for v in args.k1.split(",")]
+        except ValueError:
+            raise ValueError(f"--k1 {args.k1!r}: give comma-separated numbers") from None
+    result = calibrate_k1(
+        args.data,
+        scene,
+        flow=args.flow,
+        k1=grid,
+        cache=args.cache,
+        progress=not args.quiet,
+    )
+    from .io import write_result
+
+    write_result(result, out / "calibration.nc", scene=scene, title="blendxr calibration of k1")
+    save_figure(calibration_figure(result), out / "calibration.png")
+    a = result.attrs
+    print(
+        f"best k1 = {a['best_k1']:.4g} (cost {a['best_cost']:.4g}, summed absolute "
+        f"difference of {a['metric']}; grid best {a['grid_best_k1']:g})"
+    )
+    for k, cost in zip(result["k1"].values, result["cost"].values, strict=True):
+        print(f"  k1 {k:<8g} cost {cost:.4g}")
+    print(f"wrote {out / 'calibration.nc'} and {out / 'calibration.png'}")
+    return 0
+
+
 def _cmd_validate(args) -> int:
     import xarray as xr
 
@@ -313,6 +349,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_set(p)
     p.set_defaults(func=_cmd_flow)
+
+    p = sub.add_parser("calibrate", help="fit k1 to a measured intensity or RSD curve")
+    p.add_argument("scene")
+    p.add_argument("data", help="CSV with columns revolution and intensity (or rsd)")
+    p.add_argument("--k1", help="comma-separated k1 values to try (default: 0 to 0.03)")
+    p.add_argument("--flow", help="a flow netCDF file (default: the scene's own flow)")
+    p.add_argument("-o", "--output", default=".", help="output folder (default: .)")
+    p.add_argument("--cache", help="folder of cached flows")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_set(p)
+    p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser("validate", help="check netCDF files against the blendxr schemas")
     p.add_argument("files", nargs="+")

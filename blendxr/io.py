@@ -166,6 +166,39 @@ def write_dataset(ds: xr.Dataset, path: str | os.PathLike, *, history: str | Non
     return target
 
 
+def write_result(ds: xr.Dataset, path: str | os.PathLike, *, scene=None, title: str) -> Path:
+    """Write a study's result (no flow/mixing schema) to netCDF atomically, with the CF
+    global attributes, the blendxr version and the scene.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        Every variable should carry ``units`` and ``long_name``.
+    path : str or path-like
+    scene : Scene, optional
+        Stored as TOML text in the ``scene`` attribute.
+    title : str
+        The ``title`` attribute.
+    """
+    from ._version import __version__
+
+    target = Path(path)
+    out = ds.copy(deep=False)
+    out.attrs = {
+        **{k: (int(v) if isinstance(v, bool) else v) for k, v in out.attrs.items()},
+        "Conventions": "CF-1.11",
+        "title": title,
+        "source": f"blendxr {__version__}",
+        "scene": scene.to_toml() if scene is not None else str(out.attrs.get("scene", "")),
+    }
+    out.attrs["history"] = _append_history(out.attrs.get("history"), f"written to {target.name}")
+    for name in out.coords:
+        out[name].encoding = {"_FillValue": None}
+    with _atomic_path(target) as tmp:
+        out.to_netcdf(tmp, mode="w", format="NETCDF4", engine="netcdf4")
+    return target
+
+
 def _chunks_for(ds_dims: Mapping[str, int], lead: str, chunks):
     if chunks in ("phase", "snapshot"):
         return {dim: (1 if dim == lead else -1) for dim in ds_dims}

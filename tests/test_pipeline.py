@@ -177,9 +177,7 @@ def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
     assert mixed.attrs["stopped_by"].startswith("rsd")
     assert mixed["revolution"].values[-1] < 3
     # the run ends with a snapshot of its last state
-    assert mixed["snapshot_revolution"].values[-1] == pytest.approx(
-        mixed["revolution"].values[-1]
-    )
+    assert mixed["snapshot_revolution"].values[-1] == pytest.approx(mixed["revolution"].values[-1])
 
 
 def test_the_floor_stop_uses_the_random_mixture_of_the_sampling_cells():
@@ -276,3 +274,28 @@ def test_run_refuses_an_output_that_is_a_file_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 2 and "existing file" in err
     assert not (tmp_path / "flows").exists()
+
+
+def test_calibrate_on_the_shell_prints_the_best_k1_and_writes_the_cost_plot(tmp_path, capsys):
+    values = {"flow.parameters.cells": 32, "numerics.cells": 72}
+    scene = bx.load_scene("drum-2d", values)
+    truth = bx.mix(bx.scene_flow(scene)[0], scene, k1=0.5, revolutions=1.0, progress=False)
+    floor = truth.attrs["random_mixture_intensity"]
+    rows = [f"{r:g},{max(v, floor):.9g}" for r, v in zip(
+        truth["revolution"].values, truth["intensity"].values, strict=True)]  # fmt: skip
+    data = tmp_path / "measured.csv"
+    data.write_text("revolution,intensity\n" + "\n".join(rows) + "\n")
+    argv = ["calibrate", "drum-2d", str(data), "--k1", "0.2,0.4,0.6,0.8", "-o", str(tmp_path), "-q"]
+    for key, value in values.items():
+        argv += ["--set", f"{key}={value}"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    best = float(out.split("best k1 = ")[1].split()[0])
+    # noise-free, the refined k1 lies within the bracket of the true value's grid points
+    assert 0.4 <= best <= 0.6
+    assert (tmp_path / "calibration.png").stat().st_size > 0
+    import xarray as xr
+
+    with xr.open_dataset(tmp_path / "calibration.nc") as ds:
+        assert list(ds["k1"].values) == [0.2, 0.4, 0.6, 0.8]
+        assert ds.attrs["best_k1"] == pytest.approx(best, rel=1e-3)
