@@ -40,6 +40,21 @@ FLOW_RECIPES = [
 ]
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _private_flow_cache(tmp_path_factory):
+    """Tests cache their solved flows in a folder of their own, never the user's."""
+    import os
+
+    folder = tmp_path_factory.mktemp("flow-cache")
+    before = os.environ.get("BLENDXR_CACHE")
+    os.environ["BLENDXR_CACHE"] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop("BLENDXR_CACHE", None)
+    else:
+        os.environ["BLENDXR_CACHE"] = before
+
+
 def make_flow(recipe_id: str):
     """Build one of the canned flows by its id in `FLOW_RECIPES`."""
     for name, function, kwargs in FLOW_RECIPES:
