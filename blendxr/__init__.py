@@ -6,6 +6,7 @@ named here; everything else is an implementation detail.
 
 from ._version import __version__
 from .ade.stepper import SCHEMES, BlowUpError, mix
+from . import images
 from .flow import analytic as flows
 from .flow.solver import FlowBlowUpError, solve_flow
 from .io import open_flow, open_mixing, write_dataset
@@ -34,6 +35,7 @@ __all__ = [
     "calibrate_k1",
     "flow_key",
     "flows",
+    "images",
     "lacey_index",
     "load_scene",
     "mix",
