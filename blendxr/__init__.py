@@ -4,9 +4,9 @@ The public face of the package (DESIGN §6). Everything a user or a test relies 
 named here; everything else is an implementation detail.
 """
 
+from . import images
 from ._version import __version__
 from .ade.stepper import SCHEMES, BlowUpError, mix
-from . import images
 from .flow import analytic as flows
 from .flow.solver import FlowBlowUpError, solve_flow
 from .io import open_flow, open_mixing, write_dataset
