@@ -1,0 +1,187 @@
+"""The paper's studies end to end: the four Tote cases of section 6 and the calibration drum.
+
+Each case runs as ``blendxr run NAME`` does (``bx.run_scene``: flow from the cache or
+solved, mixing, report) into ``runs/paper/NAME/`` of the checkout; this script then
+gathers the answers into ``benchmarks/results/paper_cases.{json,md}`` and draws
+``paper_cases_tote.png`` (the four Tote RSD curves on one plot with their random-mixture
+floors, like the paper's Fig. 12) and ``paper_cases_drum.png`` (the drum's segregation
+intensity with its floor, like Fig. 7). The committed per-case ``report.json`` and
+pictures are copied beside them under ``results/paper/NAME/``.
+
+Run: ``python benchmarks/paper_cases.py [--case NAME ...] [--reuse DIR]``. ``--reuse DIR``
+reads finished runs from ``DIR/NAME/`` (``mixing.nc`` and ``report.json`` written by
+``blendxr run NAME -o DIR/NAME``) instead of running them again. A Tote case at the
+paper's resolution takes 15-20 minutes for its flow (shared by the two loadings of one
+fill) and 2-7 minutes of mixing on 2 cores.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from _common import REPO, RESULTS, echo, machine, machine_line, table, write_json  # noqa: E402
+
+NAME = "paper_cases"
+TOTE = ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom", "tote-60-side-side")
+DRUM = "drum-calibration"
+CASES = (*TOTE, DRUM)
+PICTURES = ("mixing.png", "snapshots.png", "report.json")
+
+
+def _run(case: str, folder: Path) -> Path:
+    import blendxr as bx
+
+    out = folder / case
+    cache = Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
+    bx.run_scene(case, out, cache=cache, progress=False)
+    return out
+
+
+def _collect(case: str, out: Path) -> dict:
+    import blendxr as bx
+
+    report = json.loads((out / "report.json").read_text())
+    mixed = bx.open_mixing(out / "mixing.nc")
+    keep = RESULTS / "paper" / case
+    keep.mkdir(parents=True, exist_ok=True)
+    for name in PICTURES:
+        if (out / name).exists():
+            shutil.copyfile(out / name, keep / name)
+    return {
+        "report": report,
+        "revolution": mixed["revolution"].values.tolist(),
+        "rsd": mixed["rsd"].values.tolist(),
+        "intensity": [None if v != v else v for v in mixed["intensity"].values.tolist()],
+    }
+
+
+def _fmt(value, spec=".2f", missing="not reached"):
+    return missing if value is None else format(value, spec)
+
+
+def report_md(cases: dict, info: dict) -> str:
+    rows = []
+    for case, result in cases.items():
+        r = result["report"]
+        m, f, stages = r["mixing"], r["flow"], r["stages"]
+        n = m["revolutions_to_rsd"]
+        p = f.get("periodicity_eq30", {})
+        rows.append(
+            [
+                case,
+                _fmt(n.get("0.1")),
+                _fmt(n.get("0.05")),
+                f"{m['final_rsd']:.4f}",
+                _fmt(m["final_intensity"], ".4f", "n/a"),
+                _fmt(m["random_mixture_rsd"], ".4f", "n/a"),
+                _fmt(m["random_mixture_intensity"], ".4f", "n/a"),
+                " / ".join(f"{v:.0%}" for v in p.values()),
+                _fmt(f.get("fill_share"), ".1%", "n/a"),
+                f"{f.get('wall_time_s', float('nan')):.0f}",
+                f"{stages['mixing']['wall_s']:.0f}",
+                f"{stages['mixing']['peak_memory_mb']:.0f}",
+            ]
+        )
+    return "\n".join(
+        [
+            "# The paper's studies end to end",
+            "",
+            f"Machine: {machine_line(info)}. `benchmarks/paper_cases.py`; each row is "
+            "`blendxr run NAME` (report and pictures in `results/paper/NAME/`).",
+            "",
+            table(
+                [
+                    "case",
+                    "N(0.1)",
+                    "N(0.05)",
+                    "final RSD",
+                    "final I",
+                    "RSD_R",
+                    "I_R",
+                    "eq. 30 x/y/z",
+                    "fill",
+                    "flow s",
+                    "mix s",
+                    "mix MiB",
+                ],  # fmt: skip
+                rows,
+            ),
+            "",
+            "N(x): revolutions to RSD x. RSD_R, I_R: the random-mixture floors on the "
+            "sampling cells (five bead diameters). Flow s: the solve's wall time (the "
+            "two loadings of one fill share one flow).",
+        ]
+    )
+
+
+def figures(cases: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from blendxr.plot import save_figure
+
+    tote = [c for c in TOTE if c in cases]
+    if tote:
+        fig, ax = plt.subplots(figsize=(6.5, 4.2))
+        for case in tote:
+            result = cases[case]
+            (line,) = ax.plot(result["revolution"], result["rsd"], lw=1.5, label=case)
+            floor = result["report"]["mixing"]["random_mixture_rsd"]
+            if floor is not None:
+                ax.axhline(floor, ls="--", lw=0.8, color=line.get_color())
+        ax.axhline(0.05, ls=":", color="k", lw=1, label="RSD 5 %")
+        ax.set_xlabel("revolutions")
+        ax.set_ylabel("RSD")
+        ax.set_title("Tote, 10 rpm, k1 = 0.01 (dashed: random mixture of each case)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        save_figure(fig, RESULTS / f"{NAME}_tote.png")
+    if DRUM in cases:
+        result = cases[DRUM]
+        fig, ax = plt.subplots(figsize=(6, 4))
+        values = [float("nan") if v is None else v for v in result["intensity"]]
+        ax.semilogy(result["revolution"], values, lw=1.5, label="model, k1 = 0.01")
+        floor = result["report"]["mixing"]["random_mixture_intensity"]
+        if floor is not None:
+            ax.axhline(floor, ls="--", color="k", lw=1, label=f"random mixture {floor:.3f}")
+        ax.set_xlabel("revolutions")
+        ax.set_ylabel("segregation intensity")
+        ax.set_title("calibration drum (Table 2)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        save_figure(fig, RESULTS / f"{NAME}_drum.png")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", action="append", choices=CASES)
+    parser.add_argument("--reuse", type=Path, help="read finished runs from DIR/NAME/")
+    args = parser.parse_args()
+    info = machine()
+    echo(f"machine: {machine_line(info)}")
+    path = RESULTS / f"{NAME}.json"
+    old = json.loads(path.read_text()).get("cases", {}) if path.exists() else {}
+    for case in args.case or CASES:
+        out = args.reuse / case if args.reuse else _run(case, REPO / "runs" / "paper")
+        old[case] = _collect(case, out)
+        echo(f"{case}: {old[case]['report']['mixing']['revolutions_to_rsd']}")
+    ordered = {c: old[c] for c in CASES if c in old}
+    write_json(NAME, {"machine": info, "cases": ordered})
+    (RESULTS / f"{NAME}.md").write_text(report_md(ordered, info) + "\n")
+    figures(ordered)
+    echo(report_md(ordered, info))
+
+
+if __name__ == "__main__":
+    main()
