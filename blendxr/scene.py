@@ -20,7 +20,17 @@ import jsonschema
 import tomli_w
 import tomllib
 
-__all__ = ["Scene", "SceneError", "load_scene", "builtin_scenes", "parse_assignment", "scene_keys"]
+__all__ = [
+    "Scene",
+    "SceneError",
+    "builtin_scenes",
+    "check_values",
+    "default_of",
+    "fit_snapshots",
+    "load_scene",
+    "parse_assignment",
+    "scene_keys",
+]
 
 
 class SceneError(ValueError):
@@ -54,7 +64,23 @@ def _describe(error: jsonschema.ValidationError) -> str:
         return f"{key} = {error.instance!r} is not one of {schema['enum']}"
     if error.validator == "additionalProperties":
         return _unknown_keys(key, error)
+    if error.validator == "oneOf":
+        choices = " or ".join(_allowed(option) for option in schema["oneOf"])
+        return f"{key} = {error.instance!r} is not allowed; allowed: {choices}"
     return f"{key}: {error.message}"
+
+
+def _allowed(schema: dict) -> str:
+    """What one alternative of a ``oneOf`` admits, in words: "a number > 0", "'floor'"."""
+    if "const" in schema:
+        return repr(schema["const"])
+    bounds = [
+        f"{sign} {schema[word]}"
+        for word, sign in (("minimum", ">="), ("exclusiveMinimum", ">"), ("maximum", "<="))
+        if word in schema
+    ]
+    kind = {"number": "a number", "integer": "an integer", "string": "a string"}
+    return " ".join([kind.get(schema.get("type"), str(schema.get("type", "a value"))), *bounds])
 
 
 def _unknown_keys(section: str, error: jsonschema.ValidationError) -> str:
@@ -97,6 +123,60 @@ def parse_assignment(text: str) -> tuple[str, Any]:
     except tomllib.TOMLDecodeError:
         parsed = value
     return key, parsed
+
+
+def _key_schema(key: str) -> dict:
+    """The schema of one dotted key (``"mixing.stop_rsd"``)."""
+    section, _, name = key.partition(".")
+    try:
+        return _scene_schema()["properties"][section]["properties"][name]
+    except KeyError:
+        raise KeyError(f"{key} is not a scene key") from None
+
+
+def check_values(values: Mapping[str, Any]) -> None:
+    """Validate values given outside a scene (keyword arguments) against the scene schema.
+
+    The schema stays the one home of ranges: a function that takes a scene value as a
+    keyword checks it here instead of repeating the range.
+
+    Parameters
+    ----------
+    values : mapping
+        ``{"mixing.stop_rsd": 0.05}``; None values are skipped (absent).
+
+    Raises
+    ------
+    SceneError
+        Naming every key whose value is out of its range.
+    """
+    faults = []
+    for key, value in values.items():
+        if value is None:
+            continue
+        validator = jsonschema.Draft202012Validator(_key_schema(key))
+        for error in validator.iter_errors(value):
+            error.path.extendleft(reversed(key.split(".")))
+            faults.append(_describe(error))
+    if faults:
+        raise SceneError(sorted(faults))
+
+
+def default_of(key: str) -> Any:
+    """The schema default of a dotted key (None where the schema gives none)."""
+    return copy.deepcopy(_key_schema(key).get("default"))
+
+
+def fit_snapshots(snapshots, revolutions) -> list | None:
+    """The snapshot revolutions that fit a run of ``revolutions``, and its end.
+
+    A scene's snapshots are planned for its own length; a run made shorter keeps those
+    that fit and ends with a snapshot of its last state.
+    """
+    if not snapshots or not isinstance(revolutions, int | float):
+        return None if not snapshots else list(snapshots)
+    kept = {r for r in snapshots if isinstance(r, int | float) and r <= revolutions}
+    return sorted(kept | {revolutions})
 
 
 def _set_dotted(data: dict, values: Mapping[str, Any]) -> dict:
@@ -242,11 +322,9 @@ class Scene(Mapping):
         raw = _set_dotted(self._raw, merged)
         mixing = raw.get("mixing", {})
         if "mixing.revolutions" in merged and "mixing.snapshots" not in merged:
-            # the scene's snapshots were planned for its own length: keep those that fit
-            total = mixing["revolutions"]
-            if isinstance(total, int | float) and mixing.get("snapshots"):
-                kept = {r for r in mixing["snapshots"] if isinstance(r, int | float) and r <= total}
-                mixing["snapshots"] = sorted(kept | {total})
+            fitted = fit_snapshots(mixing.get("snapshots"), mixing["revolutions"])
+            if fitted is not None:
+                mixing["snapshots"] = fitted
         return Scene(raw)
 
     def __repr__(self) -> str:

@@ -180,6 +180,17 @@ def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
     assert mixed["snapshot_revolution"].values[-1] == pytest.approx(mixed["revolution"].values[-1])
 
 
+@pytest.mark.parametrize(
+    "keyword, value",
+    [("stop_rsd", -0.1), ("stop_rsd", "flor"), ("stop_intensity", 0), ("min_intensity_cells", 1)],
+)
+def test_mix_keywords_are_checked_against_the_scene_schema(keyword, value):
+    scene = _small_drum_scene()
+    flow = bx.scene_flow(scene)[0]
+    with pytest.raises(bx.SceneError, match=f"mixing.{keyword}"):
+        bx.mix(flow, scene, progress=False, **{keyword: value})
+
+
 def test_the_floor_stop_uses_the_random_mixture_of_the_sampling_cells():
     scene = _small_drum_scene(**{"mixing.stop_intensity": "floor", "mixing.revolutions": 6})
     mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)
@@ -226,28 +237,22 @@ def test_sampling_cells_qualify_by_the_flows_fill():
 
 def test_run_writes_the_report_and_reuses_the_cached_flow(tmp_path):
     cache = tmp_path / "cache"
-    values = {"mixing.revolutions": 1, "numerics.cells": 32}
-    first = pipeline.run_scene(
-        bx.load_scene("drum-2d-mpm", values), tmp_path / "a", cache=cache, progress=False
-    )
+
+    def run(folder, **values):
+        scene = bx.load_scene(
+            "drum-2d-mpm", {"mixing.revolutions": 1, "numerics.cells": 32, **values}
+        )
+        return pipeline.run_scene(scene, tmp_path / folder, cache=cache, progress=False)
+
+    first = run("a")
     assert first["flow_cache"]["state"] == "miss"
     for name in ("flow.nc", "mixing.nc", "report.json", "mixing.png", "snapshots.png"):
         assert (tmp_path / "a" / name).stat().st_size > 0
     assert not list((cache / "flows").glob("*.checkpoint"))
-    again = pipeline.run_scene(
-        bx.load_scene("drum-2d-mpm", {**values, "mixing.k1": 0.05}),
-        tmp_path / "b",
-        cache=cache,
-        progress=False,
-    )
+    again = run("b", **{"mixing.k1": 0.05})
     assert again["flow_cache"]["state"] == "hit"
     assert again["flow_cache"]["key"] == first["flow_cache"]["key"]
-    other = pipeline.run_scene(
-        bx.load_scene("drum-2d-mpm", {**values, "operation.rpm": 25.0}),
-        tmp_path / "c",
-        cache=cache,
-        progress=False,
-    )
+    other = run("c", **{"operation.rpm": 25.0})
     assert other["flow_cache"]["state"] == "miss"
     # the report agrees with the files it sits beside
     report = json.loads((tmp_path / "b" / "report.json").read_text())

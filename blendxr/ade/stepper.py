@@ -22,7 +22,7 @@ import xarray as xr
 
 from .. import metrics
 from .._version import __version__
-from ..scene import Scene, load_scene
+from ..scene import Scene, check_values, default_of, fit_snapshots, load_scene
 from ..schema import mixing_dataset, validate
 from . import kernels, stability
 from .diffusivity import shear_diffusivity
@@ -44,6 +44,14 @@ M_MIN = 1e-9
 SUPPORT_FILL = 1e-9
 # How far outside [0, 1] a value may stray (round-off) before the run is stopped.
 BOUND_TOLERANCE = 1e-6
+
+
+#: mix() keywords whose range the scene schema holds (checked there when given directly).
+SCHEMA_KEYS = {
+    "stop_rsd": "mixing.stop_rsd",
+    "stop_intensity": "mixing.stop_intensity",
+    "min_intensity_cells": "mixing.min_intensity_cells",
+}
 
 
 class BlowUpError(FloatingPointError):
@@ -79,7 +87,9 @@ class MixSettings:
     refresh_per_phase: int | None = 2
     stop_rsd: float | str | None = None
     stop_intensity: float | str | None = None
-    min_intensity_cells: int = 10
+    min_intensity_cells: int = field(
+        default_factory=lambda: default_of("mixing.min_intensity_cells")
+    )
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -114,16 +124,6 @@ class MixSettings:
             values = np.atleast_1d(np.asarray(self.diffusivity, float))
             if not np.all(np.isfinite(values)) or np.any(values < 0):
                 faults.append(f"diffusivity = {self.diffusivity!r}: needs finite values >= 0")
-        for name in ("stop_rsd", "stop_intensity"):
-            value = getattr(self, name)
-            if value is None or value == "floor":
-                continue
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                faults.append(f"{name} = {value!r}: needs a number > 0 or 'floor'")
-        if not (isinstance(self.min_intensity_cells, int) and self.min_intensity_cells >= 2):
-            faults.append(
-                f"min_intensity_cells = {self.min_intensity_cells!r}: needs an integer >= 2"
-            )
         if faults:
             raise ValueError("; ".join(faults))
         if self.k2 is None:
@@ -179,13 +179,11 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise TypeError(f"mix() got unknown keyword(s) {unknown}; known: {sorted(known)}")
+    # keywords with a home in the scene schema are checked there, not here again
+    check_values({SCHEMA_KEYS[k]: v for k, v in overrides.items() if k in SCHEMA_KEYS})
     values.update(overrides)
     if "revolutions" in overrides and "snapshots" not in overrides and values.get("snapshots"):
-        # the scene's snapshots were planned for its own length: keep those that fit
-        total = overrides["revolutions"]
-        values["snapshots"] = tuple(
-            sorted({r for r in values["snapshots"] if r <= total} | {total})
-        )
+        values["snapshots"] = tuple(fit_snapshots(values["snapshots"], overrides["revolutions"]))
     return MixSettings(**values)
 
 
@@ -519,9 +517,7 @@ class _Run:
             species = float(np.nansum(c * weight))
         rec["mass_a"].append(species * self.grid.cell_volume)
         if self.settings.scheme == "finite-volume":
-            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(
-                self.state.m.sum(), 1e-300
-            )
+            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(self.state.m.sum(), 1e-300)
         else:
             mismatch = 0.0
         rec["fill_mismatch"].append(float(mismatch))
