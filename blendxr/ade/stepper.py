@@ -455,14 +455,16 @@ class _Run:
             self.state.c[...] = c0
 
     # --- concentration and metrics ----------------------------------------
-    def concentration_and_weight(self):
+    def concentration_and_weight(self, fill=None):
+        """c (NaN where no material) and its weight; ``fill``: the flow's fill now, if
+        the caller has it already."""
         s = self.state
         if s.scheme == "finite-volume":
             c = np.empty(self.grid.shape)
             kernels.concentration(s.m, s.q, c, M_MIN)
             weight = np.where(np.isfinite(c), s.m, 0.0)
         else:
-            fill = self.current_fill()
+            fill = self.current_fill() if fill is None else fill
             material = fill >= MATERIAL_THRESHOLD
             c = np.where(material, s.c, np.nan)
             weight = np.where(material, fill, 0.0)
@@ -483,7 +485,8 @@ class _Run:
         return n * h[0]
 
     def record(self) -> None:
-        c, weight = self.concentration_and_weight()
+        fill = self.current_fill()  # blended once: the metrics below all need it
+        c, weight = self.concentration_and_weight(fill)
         da = xr.DataArray(
             c, dims=self.grid.dims, coords=dict(zip(self.grid.dims, self.grid.coords, strict=True))
         )
@@ -496,7 +499,7 @@ class _Run:
             # Sampling cells qualify by the flow's fill (the paper's EVF), not by the
             # carried material, which the scheme smears at the free surface over many
             # revolutions until few cells hold 95 % of it.
-            bed = np.where(np.isfinite(c), self.current_fill(), 0.0)
+            bed = np.where(np.isfinite(c), fill, 0.0)
             bed = xr.DataArray(bed, dims=da.dims, coords=da.coords)
             try:
                 samples = metrics.sample_means(da, fill=bed, cell=self.sampling_cell)
@@ -517,7 +520,7 @@ class _Run:
             species = float(np.nansum(c * weight))
         rec["mass_a"].append(species * self.grid.cell_volume)
         if self.settings.scheme == "finite-volume":
-            mismatch = np.abs(self.state.m - self.current_fill()).sum() / max(self.state.m.sum(), 1e-300)
+            mismatch = np.abs(self.state.m - fill).sum() / max(self.state.m.sum(), 1e-300)
         else:
             mismatch = 0.0
         rec["fill_mismatch"].append(float(mismatch))
