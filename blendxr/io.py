@@ -316,7 +316,17 @@ def _json_default(value):
         return value.item()
     if isinstance(value, np.ndarray):
         return value.tolist()
-    raise TypeError(f"checkpoint meta value of type {type(value).__name__} is not JSON-encodable")
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"a value of type {type(value).__name__} is not JSON-encodable")
+
+
+def write_json(data: Mapping, path: str | os.PathLike) -> Path:
+    """Write ``data`` as indented JSON atomically (NumPy values and paths as plain ones)."""
+    target = Path(path)
+    with _atomic_path(target) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    return target
 
 
 def write_checkpoint(

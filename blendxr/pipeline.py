@@ -59,10 +59,7 @@ def flow_key(scene) -> str:
         24 hexadecimal digits; equal for two scenes exactly when their flow sections
         (:data:`FLOW_SECTIONS`, defaults filled in) and the blendxr version are equal.
     """
-    scene = load_scene(scene)
-    inputs = {name: scene[name] for name in FLOW_SECTIONS if name in scene}
-    inputs["blendxr_version"] = __version__
-    text = json.dumps(inputs, sort_keys=True, separators=(",", ":"))
+    text = json.dumps(_flow_inputs(load_scene(scene)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
@@ -130,7 +127,7 @@ def scene_flow(
     source : FlowSource
     """
     from . import flows, solve_flow
-    from .io import open_flow, write_dataset
+    from .io import open_flow, write_dataset, write_json
 
     scene = load_scene(scene)
     if flow_path is not None:
@@ -152,7 +149,7 @@ def scene_flow(
     resume = Path(checkpoint) if checkpoint is not None else folder / f"{key}.checkpoint"
     flow = solve_flow(scene, progress=progress, checkpoint=resume)
     write_dataset(flow, path)
-    _write_json(folder / f"{key}.json", {"key": key, "scene": scene.name, **_flow_inputs(scene)})
+    write_json({"key": key, "scene": scene.name, **_flow_inputs(scene)}, folder / f"{key}.json")
     if checkpoint is None:
         with contextlib.suppress(FileNotFoundError):
             resume.unlink()
@@ -355,21 +352,6 @@ def report_lines(report: Mapping) -> list[str]:
     return lines
 
 
-def _write_json(path: Path, data: Mapping) -> None:
-    from .io import _atomic_path
-
-    with _atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=_json_value) + "\n")
-
-
-def _json_value(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
-
-
 # ------------------------------------------------------------------------------ run
 
 
@@ -420,7 +402,7 @@ def run_scene(
         The report (as written to ``report.json``).
     """
     from . import mix
-    from .io import write_dataset
+    from .io import write_dataset, write_json
     from .plot import save_mixing_figure, save_snapshot_figure
 
     scene = load_scene(scene)
@@ -451,5 +433,5 @@ def run_scene(
         "files": ["mixing.nc", "mixing.png", "snapshots.png", "report.json"]
         + (["flow.nc"] if save_flow else []),
     }
-    _write_json(out / "report.json", report)
+    write_json(report, out / "report.json")
     return report
