@@ -54,117 +54,8 @@ def _mix_overrides(args) -> dict:
     return overrides
 
 
-def _blocks(last: int, n: int) -> str:
-    """``"3-4"`` for revolution 4 against 3; ``"1-2 to 3-4"`` for blocks of two (the
-    first block may be shorter: ``"1 to 2-4"``)."""
-    if n == 1:
-        return f"{last - 1}-{last}"
-
-    def span(first, end):
-        return f"{first}" if first == end else f"{first}-{end}"
-
-    return f"{span(max(1, last - 2 * n + 1), last - n)} to {span(last - n + 1, last)}"
-
-
-def _periodicity_lines(a) -> list[str]:
-    """How periodic a solved flow is (eq. 30), from its attributes: the last two
-    revolutions, and every two successive ones where the run recorded them."""
-    lines = []
-    n = int(a.get("averaged_revolutions", 1) or 1)
-    if "periodicity_vx_norm" in a:
-        between = (
-            "the last two revolutions"
-            if n == 1
-            else f"the averages of the last {n} revolutions and of the {n} before"
-        )
-        lines.append(
-            f"periodicity between {between} (eq. 30): "
-            + ", ".join(
-                f"{c} {a[f'periodicity_{c}']:.1%}"
-                for c in ("vx", "vy", "vz")
-                if f"periodicity_{c}" in a
-            )
-        )
-    if "periodicity_history_revolution" in a:
-        import numpy as np
-
-        parts = "xyz"[: 3 if "periodicity_history_vz" in a else 2]
-        columns = [np.atleast_1d(a[f"periodicity_history_v{c}"]) for c in parts]
-        turned = np.atleast_1d(a["periodicity_history_revolution"])
-        lines.append(
-            f"eq. 30 by revolution ({' / '.join(parts)}): "
-            + "; ".join(
-                _blocks(j, n) + " " + " / ".join(f"{v:.1%}" for v in row)
-                for j, row in zip(turned, zip(*columns, strict=True), strict=True)
-            )
-        )
-    if "occupied_volume_over_seeded" in a:
-        # a dilating bed keeps changing its flow (docs/flow.md, the dilation angle)
-        lines.append(
-            "bed volume over the seeded at the end: "
-            f"{a['current_volume_over_seeded']:.3f} as the solver carries it (J), "
-            f"{a['occupied_volume_over_seeded']:.3f} by the particles' spacing"
-        )
-    if "fill_volume_m3" in a:
-        # cells packed past a full cell are clipped, and the flow's bed loses that much
-        lines.append(
-            f"the flow's fill holds {a['fill_volume_m3'] / a['material_volume_m3']:.1%} of "
-            f"the bed's material (largest cell {a['fill_clipped_max']:.2f} before clipping)"
-        )
-    return lines
-
-
-def _summary(mixed) -> str:
-    a = mixed.attrs
-    rsd = mixed["rsd"].values
-    rev = mixed["revolution"].values
-    lines = [
-        f"scheme {a['scheme']}, grid {a['grid_cells']}, k1 = {a['k1']:g}, "
-        f"{a['steps']} steps, dt {a['dt_min']:.3g}..{a['dt_max']:.3g} s",
-        f"wall time {a['wall_time_s']:.2f} s, "
-        f"{a['cell_updates_per_s'] / 1e6:.1f} M cell updates/s, "
-        f"species mass drift {a['mass_a_relative_drift']:.2e}",
-        f"RSD {rsd[0]:.3f} at rev {rev[0]:g} -> {rsd[-1]:.4f} at rev {rev[-1]:g}",
-    ]
-    below = rev[rsd <= 0.05]
-    if len(below):
-        lines.append(f"RSD <= 5 % (usual blend-uniformity acceptance) from revolution {below[0]:g}")
-    else:
-        lines.append("RSD did not reach 5 % in the revolutions run")
-    return "\n".join(lines)
-
-
-def _cmd_mix(args) -> int:
-    from . import mix
-    from .io import write_dataset
-    from .pipeline import check_output_folder, scene_flow
-    from .plot import save_mixing_figure
-
-    scene = _scene_from_args(args, MIX_FLAGS)
-    out = check_output_folder(args.output)
-    flow, source = scene_flow(
-        scene,
-        cache=args.cache,
-        use_cache=not args.no_cache,
-        flow_path=args.flow,
-        progress=not args.quiet,
-    )
-    print(source.describe())
-    mixed = mix(flow, scene, progress=not args.quiet, **_mix_overrides(args))
-    write_dataset(mixed, out / "mixing.nc")
-    if args.save_flow:
-        stored = flow.copy()
-        stored.attrs["scene"] = scene.to_toml()
-        write_dataset(stored, out / "flow.nc")
-    save_mixing_figure(mixed, out / "mixing.png")
-    for line in _periodicity_lines(flow.attrs):
-        print(line)
-    print(_summary(mixed))
-    print(f"wrote {out / 'mixing.nc'} and {out / 'mixing.png'}")
-    return 0
-
-
 def _cmd_run(args) -> int:
+    """``run`` and ``mix``: flow -> mixing -> report (``mix`` writes flow.nc on request)."""
     from .pipeline import report_lines, run_scene
 
     scene = _scene_from_args(args, MIX_FLAGS)
@@ -175,6 +66,7 @@ def _cmd_run(args) -> int:
         use_cache=not args.no_cache,
         flow_path=args.flow,
         progress=not args.quiet,
+        save_flow=args.save_flow,
         **_mix_overrides(args),
     )
     for line in report_lines(report):
@@ -187,7 +79,7 @@ def _cmd_run(args) -> int:
 def _cmd_flow(args) -> int:
     from . import solve_flow
     from .io import write_dataset
-    from .pipeline import check_output_folder
+    from .pipeline import check_output_folder, flow_lines, flow_summary
 
     scene = _scene_from_args(args, FLOW_FLAGS)
     out = check_output_folder(args.output)
@@ -205,7 +97,7 @@ def _cmd_flow(args) -> int:
         f"{a['particles']} particles, {a['steps']} steps, {a['wall_time_s']:.1f} s wall, "
         f"{a['particle_updates_per_s'] / 1e6:.2f} M particle updates/s"
     )
-    for line in _periodicity_lines(a):
+    for line in flow_lines(flow_summary(flow)):
         print(line)
     if particles is not None:
         from .io import _atomic_path
@@ -217,6 +109,7 @@ def _cmd_flow(args) -> int:
 
 
 def _cmd_calibrate(args) -> int:
+    from .io import write_result
     from .pipeline import check_output_folder
     from .plot import save_figure
     from .studies import calibrate_k1, calibration_figure
@@ -237,8 +130,6 @@ def _cmd_calibrate(args) -> int:
         cache=args.cache,
         progress=not args.quiet,
     )
-    from .io import write_result
-
     write_result(result, out / "calibration.nc", scene=scene, title="blendxr calibration of k1")
     save_figure(calibration_figure(result), out / "calibration.png")
     a = result.attrs
@@ -309,7 +200,6 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--dt", type=float, help="time step in s (refused above the limit)")
         p.add_argument("--initial", help="loading: top-bottom, axial, transverse")
         p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
-        p.add_argument("--save-flow", action="store_true", help="also write flow.nc")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
         add_set(p)
         p.add_argument(
@@ -330,12 +220,13 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("mix", help="run the mixing model on a scene's flow or a flow file")
     p.add_argument("scene", nargs="?", default=DEFAULT_MIX_SCENE)
     add_mix_arguments(p)
-    p.set_defaults(func=_cmd_mix)
+    p.add_argument("--save-flow", action="store_true", help="also write flow.nc")
+    p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("run", help="flow + mixing + report for a scene")
+    p = sub.add_parser("run", help="flow + mixing + report for a scene (writes flow.nc too)")
     p.add_argument("scene", nargs="?", default=DEFAULT_RUN_SCENE)
     add_mix_arguments(p)
-    p.set_defaults(func=_cmd_run)
+    p.set_defaults(func=_cmd_run, save_flow=True)
 
     p = sub.add_parser("flow", help="compute a scene's flow with the built-in solver")
     p.add_argument("scene")

@@ -262,7 +262,9 @@ def _last_finite(values) -> float | None:
 
 
 def flow_summary(flow) -> dict:
-    """The flow's own figures of merit: periodicity (eq. 30) and the fill's share."""
+    """The flow's own figures of merit, from its attributes: periodicity (eq. 30, the
+    last two revolutions and every two successive ones recorded), the bed's volume and
+    the fill's share of the material, and what the solve cost."""
     a = flow.attrs
     out = {"frame": a.get("frame"), "rpm": _finite(a.get("rpm", math.nan))}
     periodicity = {
@@ -271,14 +273,85 @@ def flow_summary(flow) -> dict:
     if periodicity:
         out["periodicity_eq30"] = periodicity
         out["averaged_revolutions"] = int(a.get("averaged_revolutions", 1) or 1)
+    if "periodicity_history_revolution" in a:
+        history = {"revolution": np.atleast_1d(a["periodicity_history_revolution"]).tolist()}
+        for c in ("vx", "vy", "vz"):
+            if f"periodicity_history_{c}" in a:
+                history[c] = np.atleast_1d(a[f"periodicity_history_{c}"]).tolist()
+        out["periodicity_history"] = history
+    if "occupied_volume_over_seeded" in a:
+        out["volume_over_seeded"] = {
+            "by_J": float(a["current_volume_over_seeded"]),
+            "by_spacing": float(a["occupied_volume_over_seeded"]),
+        }
     if "fill_volume_m3" in a and a.get("material_volume_m3"):
         out["fill_share"] = float(a["fill_volume_m3"]) / float(a["material_volume_m3"])
         out["fill_clipped_max"] = float(a.get("fill_clipped_max", math.nan))
-    for name in ("particles", "steps", "wall_time_s", "stiffness_scaling", "cell"):
+    for name in (
+        "particles",
+        "steps",
+        "wall_time_s",
+        "particle_updates_per_s",
+        "stiffness_scaling",
+        "cell",
+    ):
         if name in a:
             value = a[name]
             out[name] = value.item() if hasattr(value, "item") else value
     return out
+
+
+def _blocks(last: int, n: int) -> str:
+    """``"3-4"`` for revolution 4 against 3; ``"1-2 to 3-4"`` for blocks of two (the
+    first block may be shorter: ``"1 to 2-4"``)."""
+    if n == 1:
+        return f"{last - 1}-{last}"
+
+    def span(first, end):
+        return f"{first}" if first == end else f"{first}-{end}"
+
+    return f"{span(max(1, last - 2 * n + 1), last - n)} to {span(last - n + 1, last)}"
+
+
+def flow_lines(summary: Mapping) -> list[str]:
+    """The lines that say how good a solved flow is (:func:`flow_summary`)."""
+    lines = []
+    n = summary.get("averaged_revolutions", 1)
+    if "periodicity_eq30" in summary:
+        between = (
+            "the last two revolutions"
+            if n == 1
+            else f"the averages of the last {n} revolutions and of the {n} before"
+        )
+        lines.append(
+            f"periodicity between {between} (eq. 30): "
+            + ", ".join(f"{c} {v:.1%}" for c, v in summary["periodicity_eq30"].items())
+        )
+    if "periodicity_history" in summary:
+        history = dict(summary["periodicity_history"])
+        turned = history.pop("revolution")
+        parts = " / ".join(c[1] for c in history)
+        lines.append(
+            f"eq. 30 by revolution ({parts}): "
+            + "; ".join(
+                _blocks(int(j), n) + " " + " / ".join(f"{v:.1%}" for v in row)
+                for j, row in zip(turned, zip(*history.values(), strict=True), strict=True)
+            )
+        )
+    if "volume_over_seeded" in summary:
+        # a dilating bed keeps changing its flow (docs/flow.md, the dilation angle)
+        v = summary["volume_over_seeded"]
+        lines.append(
+            f"bed volume over the seeded at the end: {v['by_J']:.3f} as the solver carries "
+            f"it (J), {v['by_spacing']:.3f} by the particles' spacing"
+        )
+    if "fill_share" in summary:
+        # cells packed past a full cell are clipped, and the flow's bed loses that much
+        lines.append(
+            f"the flow's fill holds {summary['fill_share']:.1%} of the bed's material "
+            f"(largest cell {summary['fill_clipped_max']:.2f} before clipping)"
+        )
+    return lines
 
 
 def mixing_summary(mixed, levels=RSD_LEVELS) -> dict:
@@ -310,6 +383,9 @@ def mixing_summary(mixed, levels=RSD_LEVELS) -> dict:
         ),
         "species_mass_drift": float(a.get("mass_a_relative_drift", math.nan)),
         "steps": int(a.get("steps", 0)),
+        "dt_s": [float(a.get("dt_min", math.nan)), float(a.get("dt_max", math.nan))],
+        "wall_time_s": float(a.get("wall_time_s", math.nan)),
+        "cell_updates_per_s": float(a.get("cell_updates_per_s", math.nan)),
     }
 
 
@@ -317,15 +393,13 @@ def report_lines(report: Mapping) -> list[str]:
     """The report as the lines ``blendxr run`` prints."""
     m = report["mixing"]
     f = report["flow"]
-    lines = [report["flow_source"]]
-    if "periodicity_eq30" in f:
-        p = f["periodicity_eq30"]
-        lines.append(
-            "flow periodicity (eq. 30, last two revolutions): "
-            + ", ".join(f"{c} {v:.1%}" for c, v in p.items())
-        )
-    if "fill_share" in f:
-        lines.append(f"the flow's fill holds {f['fill_share']:.1%} of the bed's material")
+    lines = [report["flow_source"], *flow_lines(f)]
+    lines.append(
+        f"mixing: {m['scheme']}, grid {m['grid_cells']}, k1 = {m['k1']:g}, {m['steps']} steps, "
+        f"dt {m['dt_s'][0]:.3g}..{m['dt_s'][1]:.3g} s, wall time {m['wall_time_s']:.2f} s, "
+        f"{m['cell_updates_per_s'] / 1e6:.3g} M cell updates/s, "
+        f"species mass drift {m['species_mass_drift']:.2e}"
+    )
     parts = []
     for level, r in m["revolutions_to_rsd"].items():
         parts.append(f"{level}: {r:.2f}" if r is not None else f"{level}: not reached")

@@ -11,7 +11,6 @@ __all__ = [
     "mixing_panels",
     "mid_planes",
     "snapshots",
-    "save_report_figure",
     "save_mixing_figure",
     "save_snapshot_figure",
     "save_figure",
@@ -83,30 +82,6 @@ def snapshots(mixing, axis="z", position=0.0, max_panels=6):
         ax.set_ylabel("")
     fig.tight_layout()
     return fig
-
-
-def save_report_figure(mixing, path, floor=None) -> Path:
-    """Write a PNG with the mixing curve (left) and the last snapshot (right)."""
-    plt = _pyplot()
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-    mixing_curve(mixing, ax=left, floor=floor)
-    if mixing.sizes.get("snapshot", 0):
-        field = mixing["c"].isel(snapshot=-1)
-        if "z" in field.dims:
-            field = field.sel(z=0.0, method="nearest")
-        field.T.plot.imshow(
-            ax=right,
-            vmin=0,
-            vmax=1,
-            cmap="coolwarm",
-            origin="lower",
-            cbar_kwargs={"label": "c (species A)"},
-        )
-        right.set_aspect("equal")
-        rev = float(mixing["snapshot_revolution"][-1])
-        right.set_title(f"c after {rev:g} revolutions")
-    fig.tight_layout()
-    return save_figure(fig, path)
 
 
 def save_figure(fig, path, dpi=110) -> Path:

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import blendxr as bx
-from blendxr.cli import _blocks, main
+from blendxr.cli import main
+from blendxr.pipeline import _blocks
 
 
 def test_mix_writes_valid_files_and_a_picture(tmp_path, capsys):
