@@ -32,6 +32,7 @@ import numpy as np
 import xarray as xr
 
 from . import metrics
+from .metrics import _positive
 
 __all__ = ["CellFractions", "IMAGE_SUFFIXES", "red_fraction_cells", "segregation_intensity"]
 
@@ -74,16 +75,6 @@ class CellFractions(NamedTuple):
 
 
 # --------------------------------------------------------------------------- checks
-
-
-def _positive(name, value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return value
 
 
 def _check_threshold(threshold):
@@ -389,9 +380,8 @@ def _intensity_of_cells(cells, label):
             stacklevel=4,
         )
         return math.nan, n_cells
-    # Every qualified cell is one sample (cell=None): eq. (26)-(28) as in metrics.
-    field = xr.DataArray(samples, dims=("y", "x"))
-    value = float(metrics.segregation_intensity(field, cell=None, min_fill=0.0))
+    # Every qualified cell is one sample: eq. (26)-(28), the formula of metrics.
+    value = float(metrics.intensity_of_samples(xr.DataArray(samples, dims=("y", "x"))))
     if math.isnan(value):
         warnings.warn(
             f"{label}: every qualified cell is one colour (mean red fraction "
