@@ -26,7 +26,7 @@ import json  # noqa: E402
 import shutil  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from _common import REPO, RESULTS, echo, machine, machine_line, table, write_json  # noqa: E402
+from _common import REPO, RESULTS, echo, machine, machine_line, merge_cases, table  # noqa: E402
 
 NAME = "paper_cases"
 TOTE = ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom", "tote-60-side-side")
@@ -68,7 +68,8 @@ def _fmt(value, spec=".2f", missing="not reached"):
 
 def report_md(cases: dict, info: dict) -> str:
     rows = []
-    for case, result in cases.items():
+    for case in (c for c in CASES if c in cases):
+        result = cases[case]
         r = result["report"]
         m, f, stages = r["mixing"], r["flow"], r["stages"]
         n = m["revolutions_to_rsd"]
@@ -117,6 +118,7 @@ def report_md(cases: dict, info: dict) -> str:
             "N(x): revolutions to RSD x. RSD_R, I_R: the random-mixture floors on the "
             "sampling cells (five bead diameters). Flow s: the solve's wall time (the "
             "two loadings of one fill share one flow).",
+            "",
         ]
     )
 
@@ -170,17 +172,13 @@ def main() -> None:
     args = parser.parse_args()
     info = machine()
     echo(f"machine: {machine_line(info)}")
-    path = RESULTS / f"{NAME}.json"
-    old = json.loads(path.read_text()).get("cases", {}) if path.exists() else {}
     for case in args.case or CASES:
         out = args.reuse / case if args.reuse else _run(case, REPO / "runs" / "paper")
-        old[case] = _collect(case, out)
-        echo(f"{case}: {old[case]['report']['mixing']['revolutions_to_rsd']}")
-    ordered = {c: old[c] for c in CASES if c in old}
-    write_json(NAME, {"machine": info, "cases": ordered})
-    (RESULTS / f"{NAME}.md").write_text(report_md(ordered, info) + "\n")
-    figures(ordered)
-    echo(report_md(ordered, info))
+        result = _collect(case, out)
+        echo(f"{case}: {result['report']['mixing']['revolutions_to_rsd']}")
+        payload = merge_cases(NAME, {"machine": info, "cases": {case: result}}, report_md)
+    figures(payload["cases"])
+    echo(report_md(payload["cases"], info))
 
 
 if __name__ == "__main__":
