@@ -11,8 +11,8 @@ pictures are copied beside them under ``results/paper/NAME/``.
 Run: ``python benchmarks/paper_cases.py [--case NAME ...] [--reuse DIR]``. ``--reuse DIR``
 reads finished runs from ``DIR/NAME/`` (``mixing.nc`` and ``report.json`` written by
 ``blendxr run NAME -o DIR/NAME``) instead of running them again. A Tote case at the
-paper's resolution takes 15-20 minutes for its flow (shared by the two loadings of one
-fill) and 2-7 minutes of mixing on 2 cores.
+paper's resolution takes tens of minutes for its flow (shared by the two loadings of one
+fill) and minutes of mixing: ``results/paper_cases.md`` gives the measured times.
 """
 
 from __future__ import annotations
