@@ -112,6 +112,17 @@ GROUPS = {
         "off",
     ),
 }
+GROUPS["drum_k1"] = (
+    # the calibration drum with the solver's flow: does k1 move the time to the floor?
+    "drum-calibration",
+    {
+        "0": {"mixing.k1": 0.0},
+        "0.005": {"mixing.k1": 0.005},
+        "0.01": {},
+        "0.02": {"mixing.k1": 0.02},
+    },
+    "0.01",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
@@ -155,6 +166,12 @@ def run_case(case: str) -> dict:
         mixed = bx.mix(flow, scene, progress=False)
     summary = pipeline.mixing_summary(mixed, LEVELS)
     flow_info = pipeline.flow_summary(flow)
+    floor = summary["random_mixture_intensity"]
+    to_floor = None
+    if floor is not None:
+        to_floor = pipeline.revolutions_to_level(
+            mixed["revolution"].values, mixed["intensity"].values, floor
+        )
     return {
         "base": base,
         "values": values,
@@ -167,6 +184,8 @@ def run_case(case: str) -> dict:
         "final_rsd": summary["final_rsd"],
         "final_intensity": summary["final_intensity"],
         "random_mixture_rsd": summary["random_mixture_rsd"],
+        "random_mixture_intensity": floor,
+        "revolutions_to_intensity_floor": to_floor,
         "periodicity_eq30": flow_info.get("periodicity_eq30"),
         "fill_share": flow_info.get("fill_share"),
         "revolution": mixed["revolution"].values.tolist(),
@@ -201,6 +220,13 @@ def _fmt_err(value) -> str:
     return "" if value is None else f"{value:.2f}"
 
 
+def _fmt_floor(result: dict) -> str:
+    """Revolutions to the random-mixture intensity (blank where no intensity is defined)."""
+    if result.get("random_mixture_intensity") is None or result.get("final_intensity") is None:
+        return ""
+    return _fmt_rev(result.get("revolutions_to_intensity_floor"))
+
+
 def report(cases: dict, machine: dict) -> str:
     lines = [
         "# The error of the answer against its cost",
@@ -209,7 +235,9 @@ def report(cases: dict, machine: dict) -> str:
         "",
         "N(x): revolutions to RSD x (log-linear between records every 0.25 revolution); "
         "|dN|: against the group's reference (marked *); curve: the largest relative "
-        "difference of the RSD curve from the reference's. Flow s: the solve's wall time "
+        "difference of the RSD curve from the reference's. N(I_R): revolutions to the "
+        "random-mixture segregation intensity of the sampling cells (where one is defined). "
+        "Flow s: the solve's wall time "
         "(a cached flow keeps it); mix s: the mixing run.",
         "",
     ]
@@ -233,6 +261,7 @@ def report(cases: dict, machine: dict) -> str:
                     _fmt_err(err.get("0.05")),
                     "" if "rsd_curve" not in err else f"{err['rsd_curve']:.1%}",
                     f"{result['final_rsd']:.4f}",
+                    _fmt_floor(result),
                     " / ".join(f"{v:.0%}" for v in p.values()) if p else "",
                     "" if result.get("fill_share") is None else f"{result['fill_share']:.1%}",
                     f"{result['flow_wall_s']:.0f}",
@@ -251,6 +280,7 @@ def report(cases: dict, machine: dict) -> str:
                     "|dN| 0.05",
                     "curve",
                     "final RSD",
+                    "N(I_R)",
                     "eq. 30",
                     "fill",
                     "flow s",
