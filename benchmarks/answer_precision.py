@@ -75,6 +75,7 @@ GROUPS = {
             "lax-wendroff": {"numerics.scheme": "lax-wendroff"},
             "finite-volume_100": {"numerics.cells": 100},
             "lax-wendroff_100": {"numerics.cells": 100, "numerics.scheme": "lax-wendroff"},
+            "lax-wendroff_150": {"numerics.cells": 150, "numerics.scheme": "lax-wendroff"},
         },
         "finite-volume_100",
     ),
