@@ -47,6 +47,7 @@ from ..schema import flow_dataset
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
 from . import mohr_coulomb as mc
+from .projection import DensityProjection
 from .walls import project_into_vessel, reflect_across_mirror
 
 __all__ = ["FlowBlowUpError", "FlowSimulation", "Material", "solve_flow"]
@@ -329,6 +330,7 @@ class SolverSettings:
     symmetry: str = "auto"
     average_revolutions: int = 1
     crowding_relief: float = 0.0
+    density_projection: int = 0
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -380,6 +382,7 @@ class SolverSettings:
             symmetry=s["symmetry"],
             average_revolutions=average,
             crowding_relief=float(s["crowding_relief"]),
+            density_projection=int(s["density_projection"]),
         )
 
 
@@ -682,6 +685,11 @@ class FlowSimulation:
             + self.material.rate_arguments()
         )
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
+        self.projection = None
+        if s.density_projection > 0:
+            self.projection = DensityProjection(
+                self.grid.node_sdf, s.cell, len(self.starts) - 1, self.grid.mirror_index
+            )
         self.reflected = 0
         self.omega = 2.0 * math.pi * s.rpm / 60.0
         self.period = 60.0 / s.rpm if s.rpm > 0 else math.inf
@@ -840,6 +848,8 @@ class FlowSimulation:
                 p.x, g.mass, g.origin, inv_h, self.inv_packed_node,
                 self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
             )  # fmt: skip
+        if self.projection is not None and self.steps % self.settings.density_projection == 0:
+            self.projection(p.x, p.vol, g.origin, self.starts)
         if self.mirror:
             self.reflected += reflect_across_mirror(
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
