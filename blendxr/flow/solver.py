@@ -849,7 +849,7 @@ class FlowSimulation:
                 self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
             )  # fmt: skip
         if self.projection is not None and self.steps % self.settings.density_projection == 0:
-            self.projection(p.x, p.vol, g.origin, self.starts)
+            self.projection(p.x, p.vol0 if os.environ.get('BX_PROJ_SEEDED') else p.vol, g.origin, self.starts)
         if self.mirror:
             self.reflected += reflect_across_mirror(
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
