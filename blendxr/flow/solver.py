@@ -849,7 +849,7 @@ class FlowSimulation:
                 self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
             )  # fmt: skip
         if self.projection is not None and self.steps % self.settings.density_projection == 0:
-            self.projection(p.x, p.vol0 if os.environ.get('BX_PROJ_SEEDED') else p.vol, g.origin, self.starts)
+            self.projection(p.x, p.vol, g.origin, self.starts)
         if self.mirror:
             self.reflected += reflect_across_mirror(
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
@@ -1255,6 +1255,20 @@ def fields_change(sim: FlowSimulation, before: tuple, after: tuple, *, vessel_fr
     return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
+def _projection_attrs(sim: FlowSimulation) -> dict:
+    """What the density projection did and cost (nothing when it is off)."""
+    pr = sim.projection
+    if pr is None:
+        return {}
+    return {
+        "density_projection_every": sim.settings.density_projection,
+        "density_projection_calls": pr.calls,
+        "density_projection_cg_iterations": pr.iterations,
+        "density_projection_wall_s": pr.wall_seconds,
+        "density_projection_last_fill_max": pr.worst_fill,
+    }
+
+
 def occupied_volume_over_seeded(sim: FlowSimulation) -> float:
     """The volume the particles occupy, from their spacing, over their seeded volume.
 
@@ -1333,6 +1347,7 @@ def _flow_from(
         "fill_clipped_max": float(raw.max()),
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
+        **_projection_attrs(sim),
         "revolutions_turned": sim.revolution(),
         "recorded_revolution": revolution,
         "averaged_revolutions": s.average_revolutions if s.rpm > 0 else 0,
