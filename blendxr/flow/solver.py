@@ -1269,6 +1269,32 @@ def _projection_attrs(sim: FlowSimulation) -> dict:
     }
 
 
+def node_packing(sim: FlowSimulation, quantiles=(0.5, 0.99, 1.0)) -> dict:
+    """Quantiles of the particles' packing on the nodes inside the bed, over the seeded
+    packing: the seeded volumes scattered with the B-splines over each node's capacity
+    (:func:`projection.node_capacity`), on the nodes filled to at least half of it.
+
+    Independent of the output cells' counts, which with a few particles a cell are
+    dominated by the particles' sampling noise.
+    """
+    from .projection import MATERIAL, DensityProjection, classify_2d, classify_3d
+
+    g, p = sim.grid, sim.particles
+    probe = sim.projection or DensityProjection(
+        g.node_sdf, g.h, len(sim.starts) - 1, g.mirror_index
+    )
+    fill = probe.node_fill(p.x, p.vol0, g.origin, sim.starts).copy()
+    code = np.zeros(fill.shape, np.int8)
+    (classify_3d if sim.ndim == 3 else classify_2d)(fill, probe.capacity, probe.air, code)
+    inside = code == MATERIAL
+    if sim.mirror:
+        inside[:, :, : g.mirror_index] = False  # images
+    if not inside.any():
+        return {}
+    ratio = fill[inside] / probe.capacity[inside]
+    return {f"node_packing_q{round(100 * q):g}": float(np.quantile(ratio, q)) for q in quantiles}
+
+
 def occupied_volume_over_seeded(sim: FlowSimulation) -> float:
     """The volume the particles occupy, from their spacing, over their seeded volume.
 
@@ -1348,6 +1374,7 @@ def _flow_from(
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
         **_projection_attrs(sim),
+        **node_packing(sim),
         "revolutions_turned": sim.revolution(),
         "recorded_revolution": revolution,
         "averaged_revolutions": s.average_revolutions if s.rpm > 0 else 0,
