@@ -177,3 +177,17 @@ def test_a_projected_run_resumed_from_its_checkpoint_is_the_same_run(tmp_path):
         np.testing.assert_array_equal(
             getattr(second.particles, name), getattr(whole.particles, name)
         )
+
+
+def test_mirror_fold_gives_the_fill_of_the_bed_and_its_image():
+    # particles above the plane z = 0 (node plane k0) and, for the reference, their
+    # images below it: the folded scatter of the kept ones is the scatter of both
+    k0, shape = 3, (8, 8, 9)
+    origin = np.array([0.0, 0.0, -float(k0)])  # inv_h = 1: node k0 at z = 0
+    x = np.column_stack([RNG.uniform(2, 5, 200), RNG.uniform(2, 5, 200), RNG.uniform(0, 1.4, 200)])
+    vol = RNG.uniform(0.5, 1.0, 200)
+    projection = pr.DensityProjection(np.full(shape, -5.0), 1.0, 2, mirror_index=k0)
+    folded = projection.node_fill(x, vol, origin, chunk_starts(200, 2)).copy()
+    both = np.concatenate([x, x * [1.0, 1.0, -1.0]])
+    expected = reference.scatter_volume(both, np.concatenate([vol, vol]), origin, 1.0, shape)
+    np.testing.assert_allclose(folded, expected, rtol=1e-12, atol=1e-14)
