@@ -42,33 +42,39 @@ NAME = "flow_crowding"
 KAPPA = 0.001
 TOTE_CELL = 0.0125
 TOTE_REVOLUTIONS = 3
-#: case -> (vessel, cell [m], kappa)
+#: steps between two density projections in the projected cases
+PROJECT_EVERY = 10
+#: case -> (vessel, cell [m], kappa, steps between density projections (0: none))
 CASES = {
-    "drum_2.5mm": ("drum", 0.0025, 0.0),
-    "drum_2.5mm_relief": ("drum", 0.0025, KAPPA),
-    "drum_1.75mm": ("drum", 0.00175, 0.0),
-    "drum_1.75mm_relief": ("drum", 0.00175, KAPPA),
-    "tote40": ("tote", TOTE_CELL, 0.0),
-    "tote40_relief": ("tote", TOTE_CELL, KAPPA),
+    "drum_2.5mm": ("drum", 0.0025, 0.0, 0),
+    "drum_2.5mm_relief": ("drum", 0.0025, KAPPA, 0),
+    "drum_2.5mm_projection": ("drum", 0.0025, 0.0, PROJECT_EVERY),
+    "drum_1.75mm": ("drum", 0.00175, 0.0, 0),
+    "drum_1.75mm_relief": ("drum", 0.00175, KAPPA, 0),
+    "drum_1.75mm_projection": ("drum", 0.00175, 0.0, PROJECT_EVERY),
+    "tote40": ("tote", TOTE_CELL, 0.0, 0),
+    "tote40_relief": ("tote", TOTE_CELL, KAPPA, 0),
+    "tote40_projection": ("tote", TOTE_CELL, 0.0, PROJECT_EVERY),
 }
 COMPONENTS = ("vx", "vy", "vz")
 #: the mixing answer on the Tote's flow, as flow_tote_drift reports it (top-bottom loading)
 MIX = {"revolutions": 5, "cells": 50, "output_every": 0.5, "progress": False}
 
 
-def scene(vessel: str, cell: float, kappa: float) -> dict:
+def scene(vessel: str, cell: float, kappa: float, projection: int = 0) -> dict:
     if vessel == "drum":
         out = flow_drum.scene(cell, 0.0)
     else:
         out = flow_tote.tote(0.4, cell, flow_tote.DEFAULT_SCALING, TOTE_REVOLUTIONS)
     out["solver"]["crowding_relief"] = kappa
+    out["solver"]["density_projection"] = projection
     return out
 
 
 def run_case(name: str) -> dict:
-    vessel, cell, kappa = CASES[name]
+    vessel, cell, kappa, projection = CASES[name]
     started = time.perf_counter()
-    flow = bx.solve_flow(scene(vessel, cell, kappa), progress=False)
+    flow = bx.solve_flow(scene(vessel, cell, kappa, projection), progress=False)
     wall = time.perf_counter() - started
     a = flow.attrs
     out = {
@@ -76,6 +82,7 @@ def run_case(name: str) -> dict:
         "vessel": vessel,
         "cell_m": cell,
         "crowding_relief": kappa,
+        "density_projection": projection,
         "wall_s": wall,
         "steps": int(a["steps"]),
         "fill_share": float(a["fill_volume_m3"] / a["material_volume_m3"]),
@@ -115,7 +122,8 @@ def _share(r: dict) -> list:
 def report(results: dict, info: dict) -> str:
     done = [(c, results[c]) for c in CASES if c in results]
     drums = [
-        [name, f"{r['cell_m'] * 1000:g}", f"{r['crowding_relief']:g}", *_share(r),
+        [name, f"{r['cell_m'] * 1000:g}", f"{r['crowding_relief']:g}",
+         f"{r.get('density_projection', 0)}", *_share(r),
          f"{r['chord_offset_m'] * 1000:+.1f}", f"{r['thin_layer_error_mid']:+.1%}",
          f"{r['thin_layer_error_worst']:+.1%}", f"{r['rigid_bed_error_worst']:.1%}",
          " / ".join(f"{r['periodicity_norm'][c]:.3f}" for c in COMPONENTS[:2]),
@@ -123,7 +131,8 @@ def report(results: dict, info: dict) -> str:
         for name, r in done if r["vessel"] == "drum"
     ]  # fmt: skip
     totes = [
-        [name, f"{r['cell_m'] * 1000:g}", f"{r['crowding_relief']:g}", *_share(r),
+        [name, f"{r['cell_m'] * 1000:g}", f"{r['crowding_relief']:g}",
+         f"{r.get('density_projection', 0)}", *_share(r),
          percent_xyz(r["eq30_lab"]), percent_xyz(r["eq30_noise"]),
          f"{r['mix_rsd'][-1]:.3f}" if "mix_rsd" in r else "n/a", f"{r['wall_s']:.0f}"]
         for name, r in done if r["vessel"] == "tote"
@@ -137,7 +146,8 @@ def report(results: dict, info: dict) -> str:
         'clipping at 1; "largest raw fill": the largest phase-averaged fill before '
         'clipping; "spacing vol / seeded": the volume the particles take by their '
         "spacing at the end over the seeded one; J: the same by the volumes the solver "
-        "integrates. Relief: `solver.crowding_relief` (kappa).\n\n"
+        "integrates. Relief: `solver.crowding_relief` (kappa); projection: "
+        "`solver.density_projection` (steps between two).\n\n"
         "## Drum (150 mm, half full, 10 rpm, c = 0, E/100, two revolutions)\n\n"
         "Chord offset: the surface line's distance from the axis (0 for a half-full bed "
         "at its seeded packing). Thin layer: layer flux / ω (L² - s²)/2 - 1 at s = 0 and "
@@ -148,6 +158,7 @@ def report(results: dict, info: dict) -> str:
                 "case",
                 "cell mm",
                 "kappa",
+                "projection",
                 *share,
                 "chord offset mm",
                 "thin layer s=0",
@@ -167,6 +178,7 @@ def report(results: dict, info: dict) -> str:
                 "case",
                 "cell mm",
                 "kappa",
+                "projection",
                 *share,
                 "eq. 30 x/y/z",
                 "noise x/y/z",

@@ -19,11 +19,14 @@ __all__ = [
     "bounded_gap",
     "bulk_pressure",
     "deposit",
+    "displace",
     "g2p",
     "grid_update",
     "p2g",
     "particles_in_range",
+    "poisson_matrix",
     "relieve_crowding",
+    "scatter_volume",
     "sort_by_cell",
     "stencil",
 ]
@@ -222,6 +225,77 @@ def relieve_crowding(x, mass, origin, inv_h, inv_packed, shift, max_shift):
             others = np.prod([value[:, b] for b in range(d) if b != a], axis=0)
             grad[:, a] += -slope[:, a] * others * e
     move = -shift * grad
+    norm = np.sqrt((move**2).sum(axis=1))
+    scale = np.where(norm > max_shift, max_shift / np.where(norm > 0, norm, 1.0), 1.0)
+    return x + move * scale[:, None]
+
+
+def scatter_volume(x, vol, origin, inv_h, shape):
+    """Node fill ``sum_p vol_p w_ip / h^d`` with the quadratic B-splines: the twin of
+    ``projection.scatter_volume_2d`` / ``_3d``."""
+    d = x.shape[1]
+    f = (x - origin) * inv_h
+    base = np.floor(f - 0.5).astype(np.int64)
+    out = np.zeros(shape)
+    for offset in itertools.product(range(3), repeat=d):
+        node = base + np.array(offset)
+        value, _ = _bspline(node - f)
+        np.add.at(out, tuple(node.T), vol * np.prod(value, axis=1) * inv_h**d)
+    return out
+
+
+def poisson_matrix(code, regularisation):
+    """The sparse matrix of ``projection.laplacian_2d`` / ``_3d`` (no mirror) on the
+    material nodes, and their index: links to air see 0, links to walls carry no flux."""
+    import scipy.sparse as sp
+
+    from .projection import MATERIAL, SOLID
+
+    material = code == MATERIAL
+    index = -np.ones(code.shape, np.int64)
+    index[material] = np.arange(int(material.sum()))
+    rows, cols, vals = [], [], []
+    diagonal = np.full(int(material.sum()), regularisation)
+    for axis in range(code.ndim):
+        for step in (-1, 1):
+            here = np.argwhere(material)
+            there = here.copy()
+            there[:, axis] += step
+            inside = (there[:, axis] >= 0) & (there[:, axis] < code.shape[axis])
+            here, there = here[inside], there[inside]
+            kind = code[tuple(there.T)]
+            i = index[tuple(here.T)]
+            open_ = kind != SOLID
+            np.add.at(diagonal, i[open_], 1.0)
+            linked = kind == MATERIAL
+            rows.append(i[linked])
+            cols.append(index[tuple(there[linked].T)])
+            vals.append(-np.ones(int(linked.sum())))
+    n = int(material.sum())
+    rows.append(np.arange(n))
+    cols.append(np.arange(n))
+    vals.append(diagonal)
+    matrix = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
+    return matrix, index
+
+
+def displace(x, phi, origin, inv_h, max_shift):
+    """Positions moved by ``-h grad phi`` interpolated with the quadratic B-splines, at
+    most ``max_shift`` each: the twin of ``projection.displace_2d`` / ``_3d``."""
+    d = x.shape[1]
+    f = (x - origin) * inv_h
+    base = np.floor(f - 0.5).astype(np.int64)
+    grad = np.zeros_like(x)
+    for offset in itertools.product(range(3), repeat=d):
+        node = base + np.array(offset)
+        value, slope = _bspline(node - f)
+        v = phi[tuple(node.T)]
+        for a in range(d):
+            others = np.prod([value[:, b] for b in range(d) if b != a], axis=0)
+            grad[:, a] += -slope[:, a] * others * v
+    move = -grad / inv_h
     norm = np.sqrt((move**2).sum(axis=1))
     scale = np.where(norm > max_shift, max_shift / np.where(norm > 0, norm, 1.0), 1.0)
     return x + move * scale[:, None]

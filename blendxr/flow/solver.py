@@ -47,6 +47,7 @@ from ..schema import flow_dataset
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
 from . import mohr_coulomb as mc
+from .projection import DensityProjection
 from .walls import project_into_vessel, reflect_across_mirror
 
 __all__ = ["FlowBlowUpError", "FlowSimulation", "Material", "solve_flow"]
@@ -329,6 +330,7 @@ class SolverSettings:
     symmetry: str = "auto"
     average_revolutions: int = 1
     crowding_relief: float = 0.0
+    density_projection: int = 0
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -380,6 +382,7 @@ class SolverSettings:
             symmetry=s["symmetry"],
             average_revolutions=average,
             crowding_relief=float(s["crowding_relief"]),
+            density_projection=int(s["density_projection"]),
         )
 
 
@@ -682,6 +685,11 @@ class FlowSimulation:
             + self.material.rate_arguments()
         )
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
+        self.projection = None
+        if s.density_projection > 0:
+            self.projection = DensityProjection(
+                self.grid.node_sdf, s.cell, len(self.starts) - 1, self.grid.mirror_index
+            )
         self.reflected = 0
         self.omega = 2.0 * math.pi * s.rpm / 60.0
         self.period = 60.0 / s.rpm if s.rpm > 0 else math.inf
@@ -840,6 +848,8 @@ class FlowSimulation:
                 p.x, g.mass, g.origin, inv_h, self.inv_packed_node,
                 self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
             )  # fmt: skip
+        if self.projection is not None and self.steps % self.settings.density_projection == 0:
+            self.projection(p.x, p.vol, g.origin, self.starts)
         if self.mirror:
             self.reflected += reflect_across_mirror(
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
@@ -1245,6 +1255,46 @@ def fields_change(sim: FlowSimulation, before: tuple, after: tuple, *, vessel_fr
     return {**periodicity(vel_b, vel_a, fill_b, fill_a), **out}
 
 
+def _projection_attrs(sim: FlowSimulation) -> dict:
+    """What the density projection did and cost (nothing when it is off)."""
+    pr = sim.projection
+    if pr is None:
+        return {}
+    return {
+        "density_projection_every": sim.settings.density_projection,
+        "density_projection_calls": pr.calls,
+        "density_projection_cg_iterations": pr.iterations,
+        "density_projection_wall_s": pr.wall_seconds,
+        "density_projection_last_fill_max": pr.worst_fill,
+    }
+
+
+def node_packing(sim: FlowSimulation, quantiles=(0.5, 0.99, 1.0)) -> dict:
+    """Quantiles of the particles' packing on the nodes inside the bed, over the seeded
+    packing: the seeded volumes scattered with the B-splines over each node's capacity
+    (:func:`projection.node_capacity`), on the nodes filled to at least half of it.
+
+    Independent of the output cells' counts, which with a few particles a cell are
+    dominated by the particles' sampling noise.
+    """
+    from .projection import MATERIAL, DensityProjection, classify_2d, classify_3d
+
+    g, p = sim.grid, sim.particles
+    probe = sim.projection or DensityProjection(
+        g.node_sdf, g.h, len(sim.starts) - 1, g.mirror_index
+    )
+    fill = probe.node_fill(p.x, p.vol0, g.origin, sim.starts).copy()
+    code = np.zeros(fill.shape, np.int8)
+    (classify_3d if sim.ndim == 3 else classify_2d)(fill, probe.capacity, probe.air, code)
+    inside = code == MATERIAL
+    if sim.mirror:
+        inside[:, :, : g.mirror_index] = False  # images
+    if not inside.any():
+        return {}
+    ratio = fill[inside] / probe.capacity[inside]
+    return {f"node_packing_q{round(100 * q):g}": float(np.quantile(ratio, q)) for q in quantiles}
+
+
 def occupied_volume_over_seeded(sim: FlowSimulation) -> float:
     """The volume the particles occupy, from their spacing, over their seeded volume.
 
@@ -1323,6 +1373,8 @@ def _flow_from(
         "fill_clipped_max": float(raw.max()),
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
+        **_projection_attrs(sim),
+        **node_packing(sim),
         "revolutions_turned": sim.revolution(),
         "recorded_revolution": revolution,
         "averaged_revolutions": s.average_revolutions if s.rpm > 0 else 0,
