@@ -124,6 +124,17 @@ GROUPS["drum_k1"] = (
     },
     "0.01",
 )
+GROUPS["drum_k1_200cells"] = (
+    # the same at twice the ADE resolution: does k1 matter more once the scheme's own
+    # diffusion is halved?
+    "drum-calibration",
+    {
+        "0": {"mixing.k1": 0.0, "numerics.cells": 200},
+        "0.01": {"numerics.cells": 200},
+        "0.02": {"mixing.k1": 0.02, "numerics.cells": 200},
+    },
+    "0.01",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
