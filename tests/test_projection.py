@@ -191,3 +191,17 @@ def test_mirror_fold_gives_the_fill_of_the_bed_and_its_image():
     both = np.concatenate([x, x * [1.0, 1.0, -1.0]])
     expected = reference.scatter_volume(both, np.concatenate([vol, vol]), origin, 1.0, shape)
     np.testing.assert_allclose(folded, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_a_mirrored_3d_bed_is_projected_and_stays_within_its_packing():
+    import blendxr as bx
+    from blendxr.flow.solver import node_packing
+
+    scene = bx.load_scene("tote-small", {"solver.density_projection": 5})
+    sim = FlowSimulation(scene)
+    assert sim.mirror and sim.projection.k0 >= 0
+    sim.run(until=sim.settings.settle_time + 0.1 * sim.period, progress=False)
+    assert sim.projection.calls > 0
+    assert node_packing(sim)["node_packing_q100"] <= 1.15
+    # the particles stay on their side of the mirror plane
+    assert sim.particles.x[:, 2].min() >= 0.0
