@@ -135,6 +135,11 @@ GROUPS["drum_k1_200cells"] = (
     },
     "0.01",
 )
+GROUPS["drum_ade_cells"] = (
+    "drum-calibration",
+    {"100": {}, "200": {"numerics.cells": 200}, "400": {"numerics.cells": 400}},
+    "400",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
