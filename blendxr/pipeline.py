@@ -11,6 +11,7 @@ and peak memory go into the report.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import math
@@ -57,7 +58,8 @@ def flow_key(scene) -> str:
     -------
     str
         24 hexadecimal digits; equal for two scenes exactly when their flow sections
-        (:data:`FLOW_SECTIONS`, defaults filled in) and the blendxr version are equal.
+        (:data:`FLOW_SECTIONS`, defaults filled in), the blendxr version and the solver's
+        source (:func:`solver_source_digest`) are equal.
     """
     text = json.dumps(_flow_inputs(load_scene(scene)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
@@ -156,9 +158,25 @@ def scene_flow(
     return open_flow(path), FlowSource("solver", "miss", key, str(path))
 
 
+@functools.cache
+def solver_source_digest() -> str:
+    """A hash of the flow solver's source (``blendxr/flow/*.py`` and ``vessels.py``).
+
+    In the cache key beside the version, so that a changed solver between two releases
+    (a development install) never reads a flow the old code solved.
+    """
+    package = Path(__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted([*(package / "flow").glob("*.py"), package / "vessels.py"]):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def _flow_inputs(scene: Scene) -> dict:
     return {
         "blendxr_version": __version__,
+        "solver_source": solver_source_digest(),
         **{name: scene[name] for name in FLOW_SECTIONS if name in scene},
     }
 

@@ -126,6 +126,11 @@ def test_the_paper_cases_of_one_fill_share_their_flow_and_the_version_is_in_the_
     before = pipeline.flow_key("tote-small")
     monkeypatch.setattr(pipeline, "__version__", "0.0.0-other")
     assert pipeline.flow_key("tote-small") != before
+    monkeypatch.undo()
+    assert pipeline.flow_key("tote-small") == before
+    # a changed solver (a development install between releases) changes the key too
+    monkeypatch.setattr(pipeline, "solver_source_digest", lambda: "edited")
+    assert pipeline.flow_key("tote-small") != before
 
 
 def test_the_cache_folder_follows_argument_then_environment(monkeypatch, tmp_path):
