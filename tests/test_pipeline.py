@@ -185,6 +185,28 @@ def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
     assert mixed["snapshot_revolution"].values[-1] == pytest.approx(mixed["revolution"].values[-1])
 
 
+def test_the_last_state_is_not_kept_twice_beside_a_planned_snapshot_a_rounding_away():
+    from blendxr.ade.stepper import _Run, _settings_from
+
+    scene = _small_drum_scene()
+    flow = bx.scene_flow(scene)[0]
+    run = _Run(flow, scene, _settings_from(scene, {"progress": False}))
+    run.initialise()
+    run.snapshots[0.5] = np.zeros(run.grid.shape)
+    run.t = 0.5 * run.period * (1 + 4e-16)  # the clock a rounding past the planned 0.5
+    run.keep_snapshot()
+    assert list(run.snapshots) == [0.5]
+
+
+def test_a_stop_at_a_planned_snapshot_keeps_one_snapshot_there():
+    planned = [0.25 * k for k in range(13)]  # every record is a planned snapshot
+    scene = _small_drum_scene(**{"mixing.stop_rsd": 0.3, "mixing.snapshots": planned})
+    mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)  # validated on return
+    revs = mixed["snapshot_revolution"].values
+    assert mixed.attrs["stopped_by"].startswith("rsd")
+    assert np.all(np.diff(revs) > 0) and revs[-1] == pytest.approx(mixed["revolution"].values[-1])
+
+
 @pytest.mark.parametrize(
     "keyword, value",
     [("stop_rsd", -0.1), ("stop_rsd", "flor"), ("stop_intensity", 0), ("min_intensity_cells", 1)],

@@ -532,7 +532,8 @@ class _Run:
     def keep_snapshot(self) -> None:
         """Keep c now as a snapshot (a run stopped early ends with its last state)."""
         rev = self.t / self.period
-        if rev not in self.snapshots:
+        # a stop at a planned snapshot has it already (keyed by the planned revolution)
+        if all(abs(rev - r) > 1e-9 for r in self.snapshots):
             self.snapshots[rev] = self.concentration_and_weight()[0]
 
     # --- stepping ---------------------------------------------------------
