@@ -55,26 +55,34 @@ CASES = {
     "tote40": ("tote", TOTE_CELL, 0.0, 0),
     "tote40_relief": ("tote", TOTE_CELL, KAPPA, 0),
     "tote40_projection": ("tote", TOTE_CELL, 0.0, PROJECT_EVERY),
+    # the projection with no dilation (the paper's intent: its 0.1 deg is Abaqus's
+    # smallest value): a bed whose spacing follows J no longer grows with J's drift
+    "drum_2.5mm_projection_psi0": ("drum", 0.0025, 0.0, PROJECT_EVERY, 0.0),
+    "tote40_projection_psi0": ("tote", TOTE_CELL, 0.0, PROJECT_EVERY, 0.0),
 }
 COMPONENTS = ("vx", "vy", "vz")
 #: the mixing answer on the Tote's flow, as flow_tote_drift reports it (top-bottom loading)
 MIX = {"revolutions": 5, "cells": 50, "output_every": 0.5, "progress": False}
 
 
-def scene(vessel: str, cell: float, kappa: float, projection: int = 0) -> dict:
+def scene(vessel: str, cell: float, kappa: float, projection: int = 0, psi=None) -> dict:
     if vessel == "drum":
         out = flow_drum.scene(cell, 0.0)
     else:
         out = flow_tote.tote(0.4, cell, flow_tote.DEFAULT_SCALING, TOTE_REVOLUTIONS)
     out["solver"]["crowding_relief"] = kappa
     out["solver"]["density_projection"] = projection
+    if psi is not None:
+        out.setdefault("material", {})["dilation_angle_deg"] = psi
     return out
 
 
 def run_case(name: str) -> dict:
-    vessel, cell, kappa, projection = CASES[name]
+    vessel, cell, kappa, projection, *psi = CASES[name]
+    psi = psi[0] if psi else None
+    spec = scene(vessel, cell, kappa, projection, psi)
     started = time.perf_counter()
-    flow = bx.solve_flow(scene(vessel, cell, kappa, projection), progress=False)
+    flow = bx.solve_flow(spec, progress=False)
     wall = time.perf_counter() - started
     a = flow.attrs
     out = {
@@ -83,6 +91,10 @@ def run_case(name: str) -> dict:
         "cell_m": cell,
         "crowding_relief": kappa,
         "density_projection": projection,
+        "dilation_angle_deg": bx.load_scene(spec)["material"]["dilation_angle_deg"],
+        "node_packing_q99": a.get("node_packing_q99"),
+        "node_packing_q100": a.get("node_packing_q100"),
+        "projection_wall_s": a.get("density_projection_wall_s"),
         "wall_s": wall,
         "steps": int(a["steps"]),
         "fill_share": float(a["fill_volume_m3"] / a["material_volume_m3"]),
