@@ -123,12 +123,21 @@ def run_case(name: str) -> dict:
 
 
 def _share(r: dict) -> list:
+    q = r.get("node_packing_q100")
     return [
+        _psi(r),
         f"{r['fill_share']:.1%}",
         f"{r['fill_clipped_max']:.2f}",
         f"{r['occupied_volume_over_seeded']:.3f}",
         f"{r['current_volume_over_seeded']:.3f}",
+        "" if q is None else f"{q:.2f}",
     ]
+
+
+def _psi(r: dict) -> str:
+    """The dilation angle (blank: the scene's default, for runs that did not record it)."""
+    psi = r.get("dilation_angle_deg")
+    return "" if psi is None else f"{psi:g}"
 
 
 def report(results: dict, info: dict) -> str:
@@ -149,7 +158,8 @@ def report(results: dict, info: dict) -> str:
          f"{r['mix_rsd'][-1]:.3f}" if "mix_rsd" in r else "n/a", f"{r['wall_s']:.0f}"]
         for name, r in done if r["vessel"] == "tote"
     ]  # fmt: skip
-    share = ["fill holds", "largest raw fill", "spacing vol / seeded", "J"]
+    share = ["ψ deg", "fill holds", "largest raw fill", "spacing vol / seeded", "J",
+             "node packing max"]  # fmt: skip
     return (
         f"<!-- written by benchmarks/{NAME}.py -->\n"
         f"# Crowding past the seeded packing, and the crowding relief\n\n"
@@ -158,8 +168,10 @@ def report(results: dict, info: dict) -> str:
         'clipping at 1; "largest raw fill": the largest phase-averaged fill before '
         'clipping; "spacing vol / seeded": the volume the particles take by their '
         "spacing at the end over the seeded one; J: the same by the volumes the solver "
-        "integrates. Relief: `solver.crowding_relief` (kappa); projection: "
-        "`solver.density_projection` (steps between two).\n\n"
+        "integrates; node packing max: the largest seeded packing on a node inside the "
+        "bed by the B-splines (`node_packing`, blank where not recorded). Relief: "
+        "`solver.crowding_relief` (kappa); projection: `solver.density_projection` (steps "
+        "between two); ψ: the dilation angle (blank: the default, 0.1).\n\n"
         "## Drum (150 mm, half full, 10 rpm, c = 0, E/100, two revolutions)\n\n"
         "Chord offset: the surface line's distance from the axis (0 for a half-full bed "
         "at its seeded packing). Thin layer: layer flux / ω (L² - s²)/2 - 1 at s = 0 and "
