@@ -94,6 +94,9 @@ MIDDLE = 0.4  # |s|/L within which the flux is summarised
 # add to the thin-layer deficit
 MATERIAL_CELL = 0.0035
 MATERIAL_CASES = ((100.0, 0.0), (10.0, 0.1), (10.0, 0.0))
+#: the variant ``--projection N`` sets: its own results file, the cohesionless cell study
+#: alone, every scene with these solver and material values
+VARIANT = {"name": "flow_drum", "solver": {}, "material": {}, "note": ""}
 
 
 def scene(
@@ -102,7 +105,7 @@ def scene(
     stiffness_scaling: float = STIFFNESS_SCALING,
     dilation_angle_deg: float | None = None,
 ) -> dict:
-    material = {"cohesion": cohesion}
+    material = {"cohesion": cohesion, **VARIANT["material"]}
     if dilation_angle_deg is not None:
         material["dilation_angle_deg"] = dilation_angle_deg
     return {
@@ -117,6 +120,7 @@ def scene(
             "settle_time": SETTLE_S,
             "revolutions": REVOLUTIONS,
             "checkpoint_every": 1e9,
+            **VARIANT["solver"],
         },
     }
 
@@ -304,7 +308,7 @@ def plot(rows: list[dict], path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
     s_line = np.linspace(-1, 1, 201)
     colours = {0.005: "tab:blue", 0.0035: "tab:orange", 0.0025: "tab:green", 0.00175: "tab:purple"}
-    for ax, cohesion in zip(axes[:2], COHESIONS, strict=True):
+    for ax, cohesion in zip(axes[: len(COHESIONS)], COHESIONS, strict=True):
         ax.plot(s_line, 1 - s_line**2, "k-", lw=1.5, label="ω (L² - s²)/2 (thin layer)")
         for r in rows:
             if r["cohesion_pa"] != cohesion or r.get("experiment") == "material":
@@ -625,12 +629,14 @@ def measure() -> dict:
                 f"max surface speed {row['surface_speed']['max_m_s']:.4f} m/s, "
                 f"wall {row['wall_s']:.0f} s"
             )
-    band = wall_band_experiment(CELLS[0])
-    if band is not None:
-        rows.append(band)
-    rows.extend(material_experiments())
+    if VARIANT["name"] == "flow_drum":  # the experiments belong to the default model
+        band = wall_band_experiment(CELLS[0])
+        if band is not None:
+            rows.append(band)
+        rows.extend(material_experiments())
     payload = {
-        "benchmark": "flow_drum",
+        "benchmark": VARIANT["name"],
+        "variant": VARIANT,
         "machine": info,
         "settings": {
             "diameter_m": DIAMETER,
@@ -663,7 +669,7 @@ def measure() -> dict:
         "load_average_at_end": load_average(),
         "cpu_pressure_at_end": cpu_pressure(),
     }
-    path = write_json("flow_drum", payload)
+    path = write_json(VARIANT["name"], payload)
     echo(f"wrote {path.relative_to(path.parents[2])}")
     return payload
 
@@ -687,8 +693,9 @@ def render(payload: dict) -> None:
     echo(text_findings)
 
     cells_mm = " / ".join(f"{c * 1000:g}" for c in CELLS)
+    name = VARIANT["name"]
     md = f"""<!-- written by benchmarks/flow_drum.py -->
-# Rolling drum (2-D) with the built-in flow solver
+# Rolling drum (2-D) with the built-in flow solver{VARIANT["note"]}
 
 Machine: {machine_line(info)}. Whole script {payload["total_s"]:.0f} s.
 
@@ -705,7 +712,7 @@ material (φ = {PHI_DEG}°, μw = 0.324) with E / {STIFFNESS_SCALING:g}
 chord; flux of fill·v along the normal from above the surface to where the motion turns
 uphill; surface speed = fill-weighted velocity at the local fill = 0.5 point).
 
-![flux through the layer and surface speed](flow_drum.png)
+![flux through the layer and surface speed]({name}.png)
 
 ## Surface, layer, periodicity
 
@@ -750,10 +757,10 @@ log(|d1| / |d2|) / log(1.41) from the last two differences, when they have the s
 
 {text_findings}
 """
-    write_atomic(RESULTS / "flow_drum.md", md)
-    plot(rows, RESULTS / "flow_drum.png")
+    write_atomic(RESULTS / f"{name}.md", md)
+    plot(rows, RESULTS / f"{name}.png")
     echo()
-    echo("wrote flow_drum.md, flow_drum.png")
+    echo(f"wrote {name}.md, {name}.png")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -763,9 +770,25 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="only rewrite flow_drum.md and flow_drum.png from results/flow_drum.json",
     )
+    parser.add_argument(
+        "--projection",
+        type=int,
+        metavar="N",
+        help="the cohesionless cell study with solver.density_projection = N and no "
+        "dilation, into flow_drum_projection.{json,md,png}",
+    )
     args = parser.parse_args(argv)
+    if args.projection:
+        global COHESIONS
+        COHESIONS = (0.0,)
+        VARIANT.update(
+            name="flow_drum_projection",
+            solver={"density_projection": args.projection},
+            material={"dilation_angle_deg": 0.0},
+            note=f": density projection every {args.projection} steps, no dilation",
+        )
     if args.report:
-        payload = json.loads((RESULTS / "flow_drum.json").read_text())
+        payload = json.loads((RESULTS / f"{VARIANT['name']}.json").read_text())
     else:
         payload = measure()
     render(payload)
