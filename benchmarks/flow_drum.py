@@ -777,6 +777,13 @@ def main(argv: list[str] | None = None) -> None:
         help="the cohesionless cell study with solver.density_projection = N and no "
         "dilation, into flow_drum_projection.{json,md,png}",
     )
+    parser.add_argument(
+        "--mu-i",
+        dest="mu_i",
+        action="store_true",
+        help="with --projection: the mu(I) friction on too (material.friction_angle_limit_deg "
+        "= 37.7, as docs/flow.md's drum runs), into flow_drum_projection_mu_i.*",
+    )
     args = parser.parse_args(argv)
     if args.projection:
         global COHESIONS
@@ -787,6 +794,10 @@ def main(argv: list[str] | None = None) -> None:
             material={"dilation_angle_deg": 0.0},
             note=f": density projection every {args.projection} steps, no dilation",
         )
+        if args.mu_i:
+            VARIANT["name"] += "_mu_i"
+            VARIANT["material"]["friction_angle_limit_deg"] = 37.7
+            VARIANT["note"] += ", mu(I) friction"
     if args.report:
         payload = json.loads((RESULTS / f"{VARIANT['name']}.json").read_text())
     else:
