@@ -784,6 +784,12 @@ def main(argv: list[str] | None = None) -> None:
         help="with --projection: the mu(I) friction on too (material.friction_angle_limit_deg "
         "= 37.7, as docs/flow.md's drum runs), into flow_drum_projection_mu_i.*",
     )
+    parser.add_argument(
+        "--keep-dilation",
+        dest="keep_dilation",
+        action="store_true",
+        help="with --projection: keep the scene's dilation angle, into *_dilation.*",
+    )
     args = parser.parse_args(argv)
     if args.projection:
         global COHESIONS
@@ -794,6 +800,10 @@ def main(argv: list[str] | None = None) -> None:
             material={"dilation_angle_deg": 0.0},
             note=f": density projection every {args.projection} steps, no dilation",
         )
+        if args.keep_dilation:
+            VARIANT["material"].pop("dilation_angle_deg")
+            VARIANT["name"] += "_dilation"
+            VARIANT["note"] = VARIANT["note"].replace("no dilation", "the default dilation")
         if args.mu_i:
             VARIANT["name"] += "_mu_i"
             VARIANT["material"]["friction_angle_limit_deg"] = 37.7
