@@ -795,7 +795,8 @@ def main(argv: list[str] | None = None) -> None:
         global COHESIONS
         COHESIONS = (0.0,)
         VARIANT.update(
-            name="flow_drum_projection",
+            # every 10 steps is the reference; another period gets its own files
+            name="flow_drum_projection" + ("" if args.projection == 10 else str(args.projection)),
             solver={"density_projection": args.projection},
             material={"dilation_angle_deg": 0.0},
             note=f": density projection every {args.projection} steps, no dilation",
