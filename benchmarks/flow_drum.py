@@ -782,7 +782,7 @@ def main(argv: list[str] | None = None) -> None:
         dest="mu_i",
         action="store_true",
         help="with --projection: the mu(I) friction on too (material.friction_angle_limit_deg "
-        "= 37.7, as docs/flow.md's drum runs), into flow_drum_projection_mu_i.*",
+        "= 37.7 with 1 mm grains, as flow_work_precision.py's runs), into *_mu_i.*",
     )
     parser.add_argument(
         "--keep-dilation",
@@ -807,7 +807,9 @@ def main(argv: list[str] | None = None) -> None:
             VARIANT["note"] = VARIANT["note"].replace("no dilation", "the default dilation")
         if args.mu_i:
             VARIANT["name"] += "_mu_i"
+            # with 1 mm grains, as flow_work_precision.py's mu(I) runs (the control)
             VARIANT["material"]["friction_angle_limit_deg"] = 37.7
+            VARIANT["material"]["particle_diameter"] = 0.001
             VARIANT["note"] += ", mu(I) friction"
     if args.report:
         payload = json.loads((RESULTS / f"{VARIANT['name']}.json").read_text())
