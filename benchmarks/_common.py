@@ -363,7 +363,14 @@ def run_cases(name: str, description: str, cases, run_case, report, summary) -> 
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--case", action="append", choices=list(cases),
                         help="run this case (repeatable; default: all)")  # fmt: skip
+    parser.add_argument("--report", action="store_true",
+                        help="only rewrite the table from the JSON, running nothing")  # fmt: skip
     args = parser.parse_args()
+    if args.report:
+        payload = json.loads((RESULTS / f"{name}.json").read_text())
+        write_atomic(RESULTS / f"{name}.md", report(payload["cases"], payload["machine"]))
+        echo(report(payload["cases"], payload["machine"]))
+        return payload
     info = machine()
     echo(f"machine: {machine_line(info)}")
     for case in args.case or list(cases):
