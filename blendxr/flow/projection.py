@@ -33,7 +33,7 @@ import time
 import numpy as np
 from numba import njit, prange
 
-from .kernels import _stencil, _stencil_slopes
+from .kernels import _limited, _stencil, _stencil_slopes
 
 __all__ = [
     "AIR",
@@ -501,12 +501,7 @@ def displace_2d(x, phi, origin, inv_h, max_shift, starts):
                     v = phi[bx + a, by + b]
                     gx += sx[a] * wy[b] * v
                     gy += wx[a] * sy[b] * v
-            dx = -h * gx
-            dy = -h * gy
-            norm = math.sqrt(dx * dx + dy * dy)
-            if norm > max_shift:
-                dx *= max_shift / norm
-                dy *= max_shift / norm
+            dx, dy, _ = _limited(-h * gx, -h * gy, 0.0, max_shift)
             x[q, 0] += dx
             x[q, 1] += dy
 
@@ -537,15 +532,7 @@ def displace_3d(x, phi, origin, inv_h, max_shift, starts):
                         gx += sx[a] * wy[b] * wz[c] * v
                         gy += wx[a] * sy[b] * wz[c] * v
                         gz += wx[a] * wy[b] * sz[c] * v
-            dx = -h * gx
-            dy = -h * gy
-            dz = -h * gz
-            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if norm > max_shift:
-                s = max_shift / norm
-                dx *= s
-                dy *= s
-                dz *= s
+            dx, dy, dz = _limited(-h * gx, -h * gy, -h * gz, max_shift)
             x[q, 0] += dx
             x[q, 1] += dy
             x[q, 2] += dz
