@@ -233,14 +233,9 @@ def relieve_crowding(x, mass, origin, inv_h, inv_packed, shift, max_shift):
 def scatter_volume(x, vol, origin, inv_h, shape):
     """Node fill ``sum_p vol_p w_ip / h^d`` with the quadratic B-splines: the twin of
     ``projection.scatter_volume_2d`` / ``_3d``."""
-    d = x.shape[1]
-    f = (x - origin) * inv_h
-    base = np.floor(f - 0.5).astype(np.int64)
     out = np.zeros(shape)
-    for offset in itertools.product(range(3), repeat=d):
-        node = base + np.array(offset)
-        value, _ = _bspline(node - f)
-        np.add.at(out, tuple(node.T), vol * np.prod(value, axis=1) * inv_h**d)
+    for node, weight, _ in _stencil_nodes(x, origin, inv_h):
+        np.add.at(out, node, vol * weight * inv_h ** x.shape[1])
     return out
 
 
