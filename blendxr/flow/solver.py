@@ -327,10 +327,11 @@ class SolverSettings:
     average_window: float | None
     checkpoint_every: float
     seed: int
-    symmetry: str = "auto"
-    average_revolutions: int = 1
-    crowding_relief: float = 0.0
-    density_projection: int = 0
+    # no defaults here: every value comes from the scene, whose schema holds them
+    symmetry: str
+    average_revolutions: int
+    crowding_relief: float
+    density_projection: int
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
