@@ -166,26 +166,36 @@ def test_phase_average_of_the_two_particle_halves_is_the_whole_average():
 
 def test_phase_averager_gives_volume_per_cell_and_the_volume_weighted_velocity():
     h, samples = 0.1, 4
-    avg = PhaseAverager(np.zeros(2), (3, 2), h, 2)
-    centre = np.array([[0.15, 0.05], [0.15, 0.05], [0.25, 0.15]])  # cells (1, 0), (2, 1)
-    vol = np.array([1e-3, 3e-3, 2e-3])
-    v = np.array([[1.0, 0.0], [-1.0, 2.0], [0.5, 0.5]])
+    inside = np.ones((8, 7), np.int8)
+    inside[6:] = 0  # a wall: the columns x >= 0.6 hold no material
+    avg = PhaseAverager(np.zeros(2), (8, 7), h, 2, inside=inside)
+    # a uniform lattice, two particles per cell and axis, over 0.1 <= x < 0.6, 0.1 <= y < 0.5
+    axes = [(np.arange(10) + 2.5) * h / 2, (np.arange(8) + 2.5) * h / 2]
+    block = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+    vol = np.full(len(block), (h / 2) ** 2)
+    v = np.tile([1.0, -2.0], (len(block), 1))
+    lone = np.array([[0.62, 0.05]])  # just past the wall: kept by the cells inside
     for _ in range(samples):
-        avg.add(avg.bin_of(0.98), centre, v, vol)  # phase 0.98 lies in bin 0
-        avg.add(avg.bin_of(0.5), centre[:1], v[:1], vol[:1])
+        avg.add(avg.bin_of(0.98), block, v, vol)  # phase 0.98 lies in bin 0
+        avg.add(avg.bin_of(0.5), lone, np.array([[0.5, 0.5]]), np.array([1e-3]))
     assert avg.samples.tolist() == [samples, samples]
     fill, vel, raw = avg.fields()
-    # bin 0: per sample 4e-3 m^3 in a 1e-2 m^2 cell and 2e-3 in another
-    np.testing.assert_allclose(raw[0, 1, 0], 0.4, rtol=1e-14)
-    np.testing.assert_allclose(raw[0, 2, 1], 0.2, rtol=1e-14)
-    assert raw[0].sum() == pytest.approx(0.6, rel=1e-14) and raw[1].sum() == pytest.approx(0.1)
-    np.testing.assert_allclose(vel[0, 1, 0], [(1e-3 - 3e-3) / 4e-3, 6e-3 / 4e-3], rtol=1e-14)
-    np.testing.assert_allclose(vel[0, 2, 1], [0.5, 0.5], rtol=1e-14)
-    assert (vel[0, 0] == 0.0).all()  # empty cells: no velocity
+    # the B-splines reproduce the lattice's packing in the cells away from its edges
+    np.testing.assert_allclose(raw[0, 2:4, 2:4], 1.0, rtol=1e-13)
+    # every sample keeps each particle's whole volume, none of it in the wall column
+    assert raw[0].sum() * h**2 == pytest.approx(vol.sum(), rel=1e-13)
+    assert raw[1].sum() * h**2 == pytest.approx(1e-3, rel=1e-13)
+    assert (raw[:, 6:] == 0.0).all()
+    # a velocity shared by every particle is every filled cell's velocity
+    for k, want in ((0, [1.0, -2.0]), (1, [0.5, 0.5])):
+        got = vel[k][raw[k] > 0]
+        np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), rtol=1e-13)
+    assert (vel[0][raw[0] == 0] == 0.0).all()  # empty cells: no velocity
     # more material than a cell holds is clipped in the fill, kept in the raw fill
-    avg.add(0, np.repeat(centre[:1], 10, axis=0), v[:1].repeat(10, axis=0), np.full(10, 0.01))
+    centre = np.array([[0.25, 0.25]])
+    avg.add(0, np.repeat(centre, 10, axis=0), np.zeros((10, 2)), np.full(10, 0.1))
     fill, _, raw = avg.fields()
-    assert fill[0, 1, 0] == 1.0 and raw[0, 1, 0] > 1.0
+    assert fill[0, 2, 2] == 1.0 and raw[0, 2, 2] > 1.0
 
 
 def test_phase_bins_without_samples_are_refused():

@@ -395,25 +395,80 @@ def test_contact_gap_is_bounded_by_the_packing_on_the_grid(d):
 # ---------------------------------------------------------------------------------------
 
 
+def _deposit(d, x, v, vol, origin_out, h_out, inside, mirror=False):
+    acc_vol = np.zeros(inside.shape)
+    acc_mom = np.zeros((*inside.shape, d))
+    extra = (mirror,) if d == 3 else ()
+    DEPOSIT[d](x, v, vol, origin_out, 1.0 / h_out, inside, *extra, acc_vol, acc_mom)
+    return acc_vol, acc_mom
+
+
 @DIMS
-def test_deposit_bins_volume_exactly_and_matches_twin(d):
+def test_deposit_keeps_every_volume_inside_and_matches_twin(d):
     rng = np.random.default_rng(9)
-    shape_out = (4, 3, 5)[:d]
+    shape_out = (5, 4, 6)[:d]
     origin_out = np.array([-0.1, -0.05, 0.0][:d])
     h_out = 0.04
     n = 300
-    x = rng.uniform(origin_out - h_out, origin_out + (np.array(shape_out) + 1) * h_out, (n, d))
+    x = rng.uniform(origin_out - 2 * h_out, origin_out + (np.array(shape_out) + 2) * h_out, (n, d))
     v = rng.normal(size=(n, d))
-    vol = rng.integers(1, 64, n) / 1024.0  # dyadic: every partial sum is exact
-    acc_vol = np.zeros(shape_out)
-    acc_mom = np.zeros((*shape_out, d))
-    DEPOSIT[d](x, v, vol, origin_out, 1.0 / h_out, acc_vol, acc_mom)
-    ref_vol, ref_mom = reference.deposit(x, v, vol, origin_out, 1.0 / h_out, shape_out)
-    inside = np.all((x >= origin_out) & (x < origin_out + np.array(shape_out) * h_out), axis=1)
-    assert 0 < inside.sum() < n
-    assert acc_vol.sum() == vol[inside].sum()
-    np.testing.assert_array_equal(acc_vol, ref_vol)
+    vol = rng.integers(1, 64, n) / 1024.0
+    inside = (rng.uniform(size=shape_out) < 0.8).astype(np.int8)
+    acc_vol, acc_mom = _deposit(d, x, v, vol, origin_out, h_out, inside)
+    ref_vol, ref_mom = reference.deposit(x, v, vol, origin_out, 1.0 / h_out, inside)
+    _close(acc_vol, ref_vol)
     _close(acc_mom, ref_mom)
+    # nothing lands outside, and a particle with any inside cell in its stencil
+    # deposits its whole volume (its weights renormalised over those cells)
+    assert (acc_vol[inside == 0] == 0.0).all()
+    kept = np.array([reference.deposit(x[p : p + 1], v[p : p + 1], vol[p : p + 1],
+                                       origin_out, 1.0 / h_out, inside)[0].sum() > 0
+                     for p in range(n)])  # fmt: skip
+    assert 0 < kept.sum() < n
+    assert acc_vol.sum() == pytest.approx(vol[kept].sum(), rel=1e-13)
+
+
+@DIMS
+def test_deposit_of_a_uniform_lattice_is_exactly_its_packing_away_from_the_edges(d):
+    # quadratic B-splines reproduce constants: two particles per cell and axis, each of
+    # volume (h/2)^d, give fill 1 in every cell whose stencil sees only whole stencils
+    h, cells = 0.1, 6
+    axis = (np.arange(2 * cells) + 0.5) * h / 2
+    x = np.stack(np.meshgrid(*[axis] * d, indexing="ij"), -1).reshape(-1, d)
+    vol = np.full(len(x), (h / 2) ** d)
+    v = np.tile(np.array([0.3, -1.2, 0.7][:d]), (len(x), 1))
+    inside = np.ones((cells,) * d, np.int8)
+    acc_vol, acc_mom = _deposit(d, x, v, vol, np.zeros(d), h, inside)
+    fill = acc_vol / h**d
+    # the grid's edge renormalises the weights of the particles in its outer cells,
+    # which moves volume into the next cells in: the cells two in are exact
+    core = (slice(2, -2),) * d
+    np.testing.assert_allclose(fill[core], 1.0, rtol=1e-13)
+    assert acc_vol.sum() == pytest.approx(vol.sum(), rel=1e-13)
+    np.testing.assert_allclose(acc_mom / acc_vol[..., None], np.broadcast_to(v[0], acc_mom.shape),
+                               rtol=1e-13)  # fmt: skip
+
+
+def test_deposit_folded_at_the_mirror_plane_is_the_upper_half_of_bed_and_image():
+    rng = np.random.default_rng(4)
+    h = 0.05
+    lower = np.array([-0.1, -0.125, -0.15])
+    x = rng.uniform([-0.1, -0.125, 0.0], [0.1, 0.125, 0.15], (200, 3))
+    v = rng.normal(size=(200, 3))
+    vol = rng.uniform(1.0, 2.0, 200)
+    inside = (rng.uniform(size=(4, 5, 3)) < 0.85).astype(np.int8)
+    whole_inside = np.concatenate([inside[..., ::-1], inside], axis=-1)
+    image = x * [1.0, 1.0, -1.0]
+    whole_vol, whole_mom = _deposit(3, np.concatenate([x, image]),
+                                    np.concatenate([v, v * [1.0, 1.0, -1.0]]),
+                                    np.tile(vol, 2), lower, h, whole_inside)  # fmt: skip
+    half_vol, half_mom = _deposit(3, x, v, vol, np.array([-0.1, -0.125, 0.0]), h, inside, True)
+    _close(half_vol, whole_vol[..., 3:])
+    _close(half_mom, whole_mom[..., 3:, :])
+    ref_vol, ref_mom = reference.deposit(x, v, vol, np.array([-0.1, -0.125, 0.0]), 1 / h,
+                                         inside, mirror_z=True)  # fmt: skip
+    _close(half_vol, ref_vol)
+    _close(half_mom, ref_mom)
 
 
 @DIMS

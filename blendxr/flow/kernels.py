@@ -1129,19 +1129,47 @@ def g2p_3d(
 
 # ---------------------------------------------------------------------------------------
 # Deposit onto the output grid
+#
+# The output fill is the material's volume fraction as the solver's own grid sees it:
+# each particle spreads its volume over the 3**d output cells around it with the same
+# quadratic B-spline weights as P2G, centred on the cell centres. Counting particles per
+# cell instead (nearest cell) measures how the material points happen to sit inside the
+# cells: with a few per cell they cluster at the cell scale, where no stress sees it, and
+# such counts reached twice the seeded packing where every grid node held its packing
+# (docs/flow.md, "Output"). The weights of each particle are renormalised over the cells
+# inside the vessel (``inside``), so a particle by a wall puts none of its volume outside
+# and every particle deposits exactly its volume. With ``mirror_z`` the cells are the
+# upper half of a grid symmetric about z = 0 (a mirror-symmetric run): a weight below the
+# plane belongs to the particle's image and is folded onto the cell it mirrors, with
+# its z momentum reversed.
+#
+# Serial: it runs every few steps and costs less than one P2G; a parallel version would
+# need per-thread accumulators.
 # ---------------------------------------------------------------------------------------
-# Serial: it runs once per output phase bin every few steps and costs a few ns per
-# particle, well under one P2G; a parallel version would need per-thread accumulators.
 
 
 @njit(**_JIT_SERIAL)
-def deposit_2d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
+def _centre_stencil(f):
+    """First cell and B-spline weights along one axis of the cell-centred stencil.
+
+    ``f`` is the position in cell units, ``(x - origin) / h``; cell c is centred at
+    c + 1/2. Returns ``(base, w0, w1, w2)`` for cells base, base + 1, base + 2 (not
+    clamped: the caller skips cells off the grid).
+    """
+    b = math.floor(f - 1.0)
+    r = f - 0.5 - b
+    return int(b), 0.5 * (1.5 - r) ** 2, 0.75 - (r - 1.0) ** 2, 0.5 * (r - 0.5) ** 2
+
+
+@njit(**_JIT_SERIAL)
+def deposit_2d(x, v, vol, origin_out, inv_h_out, inside, acc_vol, acc_mom):
     """Add particle volume and volume-weighted velocity to output cells (2-D).
 
-    Nearest-cell binning: cell (i, j) spans ``origin_out + [i, i + 1) * h_out`` by
-    ``origin_out + [j, j + 1) * h_out``; particles outside every cell are skipped. The
-    driver divides ``acc_mom`` by ``acc_vol`` (velocity) and ``acc_vol`` by the cell volume
-    and the number of deposits (fill).
+    Quadratic B-spline weights onto the cell centres, renormalised over the cells with
+    ``inside != 0``: cell (i, j) is centred at ``origin_out + (i + 1/2, j + 1/2) h_out``.
+    A particle with no inside cell in its stencil is skipped. The driver divides
+    ``acc_mom`` by ``acc_vol`` (velocity) and ``acc_vol`` by the cell volume and the
+    number of deposits (fill).
 
     Parameters
     ----------
@@ -1153,30 +1181,66 @@ def deposit_2d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
         Lower corner of output cell (0, 0) [m].
     inv_h_out : float
         Inverse output cell size [1/m].
+    inside : ndarray of int8, shape (mx, my)
+        Nonzero for the cells that may receive material (the vessel's).
     acc_vol : ndarray of float64, shape (mx, my)
         Accumulated volume [m^3], added to.
     acc_mom : ndarray of float64, shape (mx, my, 2)
         Accumulated volume times velocity [m^4/s], added to.
     """
     mx, my = acc_vol.shape
+    wx = np.empty(3)
+    wy = np.empty(3)
     for p in range(x.shape[0]):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
-        if not (0.0 <= fx < mx and 0.0 <= fy < my):
+        if not (-1.0 < fx < mx + 1.0 and -1.0 < fy < my + 1.0):
             continue
-        i = int(fx)
-        j = int(fy)
-        vp = vol[p]
-        acc_vol[i, j] += vp
-        acc_mom[i, j, 0] += vp * v[p, 0]
-        acc_mom[i, j, 1] += vp * v[p, 1]
+        bi, wx[0], wx[1], wx[2] = _centre_stencil(fx)
+        bj, wy[0], wy[1], wy[2] = _centre_stencil(fy)
+        total = 0.0
+        for a in range(3):
+            i = bi + a
+            if i < 0 or i >= mx:
+                continue
+            for b in range(3):
+                j = bj + b
+                if 0 <= j < my and inside[i, j] != 0:
+                    total += wx[a] * wy[b]
+        if total <= 0.0:
+            continue
+        scale = vol[p] / total
+        for a in range(3):
+            i = bi + a
+            if i < 0 or i >= mx:
+                continue
+            for b in range(3):
+                j = bj + b
+                if 0 <= j < my and inside[i, j] != 0:
+                    wv = scale * wx[a] * wy[b]
+                    acc_vol[i, j] += wv
+                    acc_mom[i, j, 0] += wv * v[p, 0]
+                    acc_mom[i, j, 1] += wv * v[p, 1]
 
 
 @njit(**_JIT_SERIAL)
-def deposit_3d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
+def _folded(k, mz, mirror_z):
+    """(cell, z sign) of stencil cell k along z: below the mirror plane, the cell it
+    mirrors and -1; off the grid, -1 as the cell."""
+    if k < 0 and mirror_z:
+        return -k - 1, -1.0
+    if 0 <= k < mz:
+        return k, 1.0
+    return -1, 1.0
+
+
+@njit(**_JIT_SERIAL)
+def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_mom):
     """Add particle volume and volume-weighted velocity to output cells (3-D).
 
-    As :func:`deposit_2d` with cells (i, j, k).
+    As :func:`deposit_2d` with cells (i, j, k); with ``mirror_z`` the cells are the upper
+    half of a grid symmetric about z = 0 (``origin_out[2] = 0``) and a weight below the
+    plane is folded onto the cell it mirrors with the z momentum reversed.
 
     Parameters
     ----------
@@ -1188,26 +1252,64 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, acc_vol, acc_mom):
         Lower corner of output cell (0, 0, 0) [m].
     inv_h_out : float
         Inverse output cell size [1/m].
+    inside : ndarray of int8, shape (mx, my, mz)
+        Nonzero for the cells that may receive material (the vessel's).
+    mirror_z : bool
+        Fold the weights below z = 0 back (the particles' images).
     acc_vol : ndarray of float64, shape (mx, my, mz)
         Accumulated volume [m^3], added to.
     acc_mom : ndarray of float64, shape (mx, my, mz, 3)
         Accumulated volume times velocity [m^4/s], added to.
     """
     mx, my, mz = acc_vol.shape
+    wx = np.empty(3)
+    wy = np.empty(3)
+    wz = np.empty(3)
+    ks = np.empty(3, np.int64)
+    sz = np.empty(3)
     for p in range(x.shape[0]):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
         fz = (x[p, 2] - origin_out[2]) * inv_h_out
-        if not (0.0 <= fx < mx and 0.0 <= fy < my and 0.0 <= fz < mz):
+        if not (-1.0 < fx < mx + 1.0 and -1.0 < fy < my + 1.0 and -1.0 < fz < mz + 1.0):
             continue
-        i = int(fx)
-        j = int(fy)
-        k = int(fz)
-        vp = vol[p]
-        acc_vol[i, j, k] += vp
-        acc_mom[i, j, k, 0] += vp * v[p, 0]
-        acc_mom[i, j, k, 1] += vp * v[p, 1]
-        acc_mom[i, j, k, 2] += vp * v[p, 2]
+        bi, wx[0], wx[1], wx[2] = _centre_stencil(fx)
+        bj, wy[0], wy[1], wy[2] = _centre_stencil(fy)
+        bk, wz[0], wz[1], wz[2] = _centre_stencil(fz)
+        for c in range(3):
+            ks[c], sz[c] = _folded(bk + c, mz, mirror_z)
+        total = 0.0
+        for a in range(3):
+            i = bi + a
+            if i < 0 or i >= mx:
+                continue
+            for b in range(3):
+                j = bj + b
+                if j < 0 or j >= my:
+                    continue
+                for c in range(3):
+                    k = ks[c]
+                    if k >= 0 and inside[i, j, k] != 0:
+                        total += wx[a] * wy[b] * wz[c]
+        if total <= 0.0:
+            continue
+        scale = vol[p] / total
+        for a in range(3):
+            i = bi + a
+            if i < 0 or i >= mx:
+                continue
+            for b in range(3):
+                j = bj + b
+                if j < 0 or j >= my:
+                    continue
+                for c in range(3):
+                    k = ks[c]
+                    if k >= 0 and inside[i, j, k] != 0:
+                        wv = scale * wx[a] * wy[b] * wz[c]
+                        acc_vol[i, j, k] += wv
+                        acc_mom[i, j, k, 0] += wv * v[p, 0]
+                        acc_mom[i, j, k, 1] += wv * v[p, 1]
+                        acc_mom[i, j, k, 2] += wv * sz[c] * v[p, 2]
 
 
 # ---------------------------------------------------------------------------------------

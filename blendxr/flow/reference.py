@@ -162,19 +162,44 @@ def rate_friction(L, stress, sin_phi, cos_phi, rise, i0, inertial_scale):
     return mu / np.sqrt(1.0 + mu**2), 1.0 / np.sqrt(1.0 + mu**2)
 
 
-def deposit(x, v, vol, origin_out, inv_h_out, shape_out):
-    """Volume and volume times velocity binned to the output cells holding the particles.
+def deposit(x, v, vol, origin_out, inv_h_out, inside, mirror_z=False):
+    """Volume and volume times velocity spread over the output cells by quadratic
+    B-splines on the cell centres, each particle's weights renormalised over the cells
+    with ``inside`` set; with ``mirror_z`` (3-D) the weights below z = 0 fold onto the
+    cells they mirror, the z momentum reversed.
 
     Returns ``(acc_vol, acc_mom)``.
     """
     d = x.shape[1]
-    f = (x - origin_out) * inv_h_out
-    inside = np.all((f >= 0.0) & (f < np.array(shape_out)), axis=1)
-    cell = tuple(np.floor(f[inside]).astype(np.int64).T)
-    acc_vol = np.zeros(shape_out)
-    acc_mom = np.zeros((*shape_out, d))
-    np.add.at(acc_vol, cell, vol[inside])
-    np.add.at(acc_mom, cell, vol[inside][:, None] * v[inside])
+    shape = np.array(inside.shape)
+    # the stencil of :func:`stencil` on the lattice of cell centres
+    base, r, w = stencil(x, origin_out + 0.5 / inv_h_out, inv_h_out)
+    cells, weights, signs = [], [], []
+    for offset in itertools.product(range(3), repeat=d):
+        cell = base + np.array(offset)
+        sign = np.ones(len(x))
+        if mirror_z:
+            below = cell[:, 2] < 0
+            cell[below, 2] = -cell[below, 2] - 1
+            sign[below] = -1.0
+        ok = np.all((cell >= 0) & (cell < shape), axis=1)
+        ok[ok] = inside[tuple(cell[ok].T)] != 0
+        weight = np.prod([w[offset[a], :, a] for a in range(d)], axis=0) * ok
+        cells.append(np.where(ok[:, None], cell, 0))
+        weights.append(weight)
+        signs.append(sign)
+    total = np.sum(weights, axis=0)
+    keep = total > 0
+    acc_vol = np.zeros(inside.shape)
+    acc_mom = np.zeros((*inside.shape, d))
+    for cell, weight, sign in zip(cells, weights, signs, strict=True):
+        share = np.where(keep, vol * weight / np.where(keep, total, 1.0), 0.0)
+        index = tuple(cell.T)
+        np.add.at(acc_vol, index, share)
+        vel = v.copy()
+        if mirror_z:
+            vel[:, 2] *= sign
+        np.add.at(acc_mom, index, share[:, None] * vel)
     return acc_vol, acc_mom
 
 

@@ -395,10 +395,13 @@ class PhaseAverager:
 
     Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
     of a bin is its mean particle volume per cell over its samples, the velocity its
-    volume-weighted mean. With ``mirror`` the particles, all at z >= 0, stand for
-    themselves and their mirror images across z = 0 (a mirror-symmetric run): only the
-    upper half of the (symmetric) output grid accumulates, and the fields are the whole
-    grid's, the lower half the reflection of the upper.
+    volume-weighted mean, each particle spread over the cells around it by the solver's
+    quadratic B-splines (:func:`kernels.deposit_3d`), renormalised over the cells of
+    ``inside`` (default: every cell) so that none of its volume lands outside. With
+    ``mirror`` the particles, all at z >= 0, stand for themselves and their mirror
+    images across z = 0 (a mirror-symmetric run): only the upper half of the (symmetric)
+    output grid accumulates, and the fields are the whole grid's, the lower half the
+    reflection of the upper.
     With ``halves``, even- and odd-numbered particles are kept apart (their sum is the
     same average): two estimates of the same field from disjoint halves of the
     particles, whose difference measures the sampling noise of the average
@@ -406,7 +409,14 @@ class PhaseAverager:
     """
 
     def __init__(
-        self, lower: np.ndarray, shape: tuple, h: float, phases: int, halves=False, mirror=False
+        self,
+        lower: np.ndarray,
+        shape: tuple,
+        h: float,
+        phases: int,
+        halves=False,
+        mirror=False,
+        inside: np.ndarray | None = None,
     ):
         self.origin = np.array(lower, float)
         self.shape = tuple(shape)
@@ -414,12 +424,17 @@ class PhaseAverager:
         self.phases = int(phases)
         self.ndim = len(shape)
         self.mirror = bool(mirror)
+        inside = np.ones(self.shape, np.int8) if inside is None else np.asarray(inside, np.int8)
+        if inside.shape != self.shape:
+            raise ValueError(f"inside has shape {inside.shape}, expected {self.shape}")
         if self.mirror:
             # the particles lie at z >= 0: only the upper half of the cells is kept
             if not _centred_in_z(self.origin, self.h, self.shape):
                 raise ValueError("mirror: the output grid must be symmetric about z = 0")
             self.origin[2] = 0.0
             self.shape = (*shape[:2], shape[2] // 2)
+            inside = inside[..., shape[2] // 2 :]
+        self.inside = np.ascontiguousarray(inside)
         parts = 2 if halves else 1
         self.vol = np.zeros((parts, phases, *self.shape))
         self.mom = np.zeros((parts, phases, *self.shape, self.ndim))
@@ -433,12 +448,16 @@ class PhaseAverager:
         return int(math.floor(phase * self.phases + 0.5)) % self.phases
 
     def add(self, k: int, x: np.ndarray, v: np.ndarray, vol: np.ndarray) -> None:
-        deposit = mpm.deposit_3d if self.ndim == 3 else mpm.deposit_2d
         parts = self.vol.shape[0]
         for half in range(parts):
             pick = slice(half, None, parts)
-            deposit(x[pick], v[pick], vol[pick], self.origin, 1.0 / self.h,
-                    self.vol[half, k], self.mom[half, k])  # fmt: skip
+            out = (self.vol[half, k], self.mom[half, k])
+            if self.ndim == 3:
+                mpm.deposit_3d(x[pick], v[pick], vol[pick], self.origin, 1.0 / self.h,
+                               self.inside, self.mirror, *out)  # fmt: skip
+            else:
+                mpm.deposit_2d(x[pick], v[pick], vol[pick], self.origin, 1.0 / self.h,
+                               self.inside, *out)  # fmt: skip
         self.samples[k] += 1
 
     def take(self, other: PhaseAverager) -> None:
@@ -702,8 +721,9 @@ class FlowSimulation:
         self.particle_updates = 0
         self.lab_frame = isinstance(self.vessel, Drum) and s.rpm > 0
         grid = (self.out_origin, self.out_shape, s.output_cell, s.phases)
-        self.last = PhaseAverager(*grid, halves=True, mirror=self.mirror)
-        self.previous = PhaseAverager(*grid, mirror=self.mirror)
+        keep = {"mirror": self.mirror, "inside": self.out_vessel}
+        self.last = PhaseAverager(*grid, halves=True, **keep)
+        self.previous = PhaseAverager(*grid, **keep)
         # rotating scenes record every revolution in turn, keeping the last two: the
         # revolution ``last`` holds (0: none yet) and eq. (30) between each completed
         # revolution and the one before, as (revolution, vx, vy[, vz]) on lab velocities
