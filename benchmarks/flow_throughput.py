@@ -9,8 +9,8 @@ drum, each measured in a representative state: settled under gravity for 0.3 s a
 turned for 1 s (60 degrees: gravity rotating, Coriolis on, the bed avalanching, so
 much of the stress update takes its plastic branches; the shares of each return are
 reported). E is scaled down by 100 to reach that state quickly; the cost of a step does
-not depend on E. Each kernel is also timed alone, and so is the optional crowding
-relief's pass (``solver.crowding_relief``, off by default and not in the step's time).
+not depend on E. Each kernel is also timed alone, and so is the density projection
+(``solver.density_projection``, once every 10 steps by default, not in the step's time).
 The whole bed is solved (``solver.symmetry = "none"``): by default a symmetric Tote is
 solved as its half z >= 0, the same work per particle on half the particles plus a fold
 of the grid.
@@ -129,12 +129,9 @@ def kernel_times(sim, dt) -> dict:
             sim.vessel.kind, sim.vessel.params, p.x, p.v, 1e-6, sim.starts, g.scratch,
             g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
         ),
-        # the optional crowding relief (solver.crowding_relief; off by default, so not in
-        # the step's time): its own pass over the particles
-        "relief": lambda: (mpm.relieve_crowding_3d if three else mpm.relieve_crowding_2d)(
-            p.x, g.mass, g.origin, inv_h, sim.inv_packed_node, 1e-3 * g.h, 0.01 * g.h,
-            sim.starts,
-        ),
+        # the density projection (solver.density_projection, every 10 steps by default,
+        # so not in the step's time): scatter, Poisson solve and displacement
+        "projection": lambda: sim.projection(p.x, p.vol, g.origin, sim.starts),
     }  # fmt: skip
     out = {}
     for name, fn in parts.items():

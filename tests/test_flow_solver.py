@@ -459,6 +459,7 @@ def test_occupied_volume_counts_the_particles_spacing(ndim, cell):
 
 def test_recording_past_revolution_3_with_dilation_warns():
     scene = drum_scene(0.4, revolutions=4)
+    scene["material"] = {"dilation_angle_deg": 0.1}  # Table 1's
     with pytest.warns(UserWarning, match="dilation_angle_deg = 0.1 dilates"):
         FlowSimulation(scene)
     scene["material"] = {"dilation_angle_deg": 0.0}
@@ -524,14 +525,7 @@ def test_a_particle_off_the_grid_stops_the_run_naming_it():
         ("flow", "cell", 1.0, "flow.cell"),
         ("material", "friction_angle_limit_deg", 20.0, "material.friction_angle_limit_deg"),
         ("material", "friction_angle_limit_deg", 95.0, "material.friction_angle_limit_deg"),
-        # the relief's diffusion of the excess packing is stable for kappa <= 1 / (2 d)
-        (
-            "solver",
-            "crowding_relief",
-            0.5,
-            "solver.crowding_relief = 0.5 is out of range; allowed: >= 0 and <= 0.1",
-        ),
-        ("solver", "crowding_relief", -0.1, "solver.crowding_relief"),
+        ("solver", "density_projection", -1, "solver.density_projection"),
     ],
 )
 def test_out_of_range_scene_values_name_the_key(section, key, value, fragment):

@@ -4,8 +4,9 @@ Facts checked: conservation of mass, momentum and angular momentum by the APIC/M
 transfers, exactness of the transfers for affine velocity fields, the exact Coriolis
 rotation, Coulomb wall friction (including the block on an incline, DESIGN section 7), the
 bulk viscosity's silence in isochoric motion, the stress update inside G2P against the
-twins of both kernels, and exact volume binning. Grids are tiny, and every
-kernel sees one argument signature per dimension, so numba compiles each once.
+twins of both kernels, and the B-spline volume deposit onto the output cells. Grids are
+tiny, and every kernel sees one argument signature per dimension, so numba compiles each
+once.
 """
 
 from __future__ import annotations
@@ -554,79 +555,3 @@ def test_volume_gained_at_the_apex_is_given_back_without_stress(d):
         np.testing.assert_allclose(stress[:, 0, 0], apex - drop, rtol=1e-9)
     else:
         assert np.all(apex - stress[:, 0, 0] > 0.5 * drop)  # pressure builds again
-
-
-# ---------------------------------------------------------------------------------------
-# Crowding relief
-# ---------------------------------------------------------------------------------------
-
-RELIEVE = {2: kernels.relieve_crowding_2d, 3: kernels.relieve_crowding_3d}
-
-
-def _relieve(d, x, mass, inv_packed, shift, max_shift):
-    x = x.copy()
-    RELIEVE[d](
-        x, mass, ORIGIN[d], INV_H, inv_packed, shift, max_shift, kernels.chunk_starts(len(x), 3)
-    )
-    return x
-
-
-@DIMS
-def test_crowding_relief_matches_twin_and_is_bounded(d):
-    rng = np.random.default_rng(31)
-    x, *_ = _particles(d, n=300, seed=31)
-    packed = 2.0e-3
-    mass = packed * rng.uniform(0.3, 1.8, SHAPES[d])  # loose and over-packed nodes
-    for shift, max_shift in ((0.05 * H, 1.0), (0.05 * H, 0.01 * H)):  # free, and limited
-        got = _relieve(d, x, mass, 1.0 / packed, shift, max_shift)
-        expected = reference.relieve_crowding(
-            x, mass, ORIGIN[d], INV_H, 1.0 / packed, shift, max_shift
-        )
-        _close(got - x, expected - x, rtol=1e-12)
-    moved = np.sqrt(((got - x) ** 2).sum(axis=1))
-    assert moved.max() <= 0.01 * H * (1 + 1e-12) and np.sum(moved > 0.0099 * H) > 10
-
-
-@DIMS
-def test_crowding_relief_leaves_a_bed_at_its_seeded_packing_alone(d):
-    # two particles per cell and axis on a lattice: quadratic B-splines reproduce
-    # constants, so every node the bed covers holds exactly the packed mass
-    shape = np.array(SHAPES[d])
-    axes = [ORIGIN[d][a] + H * (0.75 + 0.5 * np.arange(2 * (shape[a] - 2))) for a in range(d)]
-    x = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
-    m = np.full(len(x), 1e-3)
-    zeros = np.zeros((len(x), d))
-    mass, _ = _p2g(
-        d, x, zeros, np.zeros((len(x), d, d)), m, m / 1500.0, np.zeros((len(x), 3, 3)), 0.0
-    )
-    packed = 1e-3 * 2**d
-    inner = tuple(slice(2, s - 2) for s in shape)
-    np.testing.assert_allclose(mass[inner], packed, rtol=1e-13)
-    moved = _relieve(d, x, mass, 1.0 / packed, 0.1 * H, 0.01 * H) - x
-    assert np.abs(moved).max() < 1e-9 * H  # round-off of a packing of exactly 1
-
-
-@DIMS
-def test_crowding_relief_spreads_a_crowded_bed_and_keeps_its_centre(d):
-    # the lattice squeezed by 0.8 per axis about its centre: its nodes hold 1 / 0.8^d
-    # times the packed mass; relief steps (P2G between them) bring the densest node
-    # to the seeded packing, symmetrically
-    shape = np.array(SHAPES[d])
-    centre = ORIGIN[d] + H * (shape - 1) / 2
-    axes = [H * (0.25 + 0.5 * np.arange(-4, 4)) for _ in range(d)]
-    x = centre + 0.8 * np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
-    m = np.full(len(x), 1e-3)
-    packed = 1e-3 * 2**d
-
-    def masses(x):
-        z = np.zeros((len(x), d))
-        return _p2g(
-            d, x, z, np.zeros((len(x), d, d)), m, m / 1500.0, np.zeros((len(x), 3, 3)), 0.0
-        )[0]
-
-    start = masses(x).max() / packed
-    for _ in range(200):
-        x = _relieve(d, x, masses(x), 1.0 / packed, 0.1 * H, 0.01 * H)
-    end = masses(x).max() / packed
-    assert start > 1.5 and end < 1.0 + 1e-3  # 1.54 (2-D), 1.91 (3-D) to within 1e-6
-    np.testing.assert_allclose(x.mean(axis=0), centre, atol=1e-12)

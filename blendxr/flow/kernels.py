@@ -98,8 +98,6 @@ __all__ = [
     "particles_in_range",
     "reduce_grids_2d",
     "reduce_grids_3d",
-    "relieve_crowding_2d",
-    "relieve_crowding_3d",
     "sort_by_cell",
 ]
 
@@ -1313,17 +1311,7 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_
 
 
 # ---------------------------------------------------------------------------------------
-# Crowding relief
-#
-# Particles move with the interpolated grid velocity, their volumes with the affine
-# matrix; the two drift apart in a shearing bed, and particles crowd past their seeded
-# packing where no stress sees it (docs/flow.md). The relief moves each particle down the
-# gradient of the grid's excess packing e = max(m_i / (rho h^d) - 1, 0), by
-# -kappa h^2 grad e: a diffusion of the excess with coefficient kappa h^2 a step, stable
-# for kappa <= 1 / (2 d) (the schema allows kappa <= 0.1), each move bounded by
-# ``max_shift``. Where the grid holds no more than the seeded packing nothing moves, so a
-# free surface, a wall and a bed at its packing are left alone. Positions only: velocity,
-# affine matrix, stress and mass stay with the particle.
+# Helpers of the density projection (blendxr.flow.projection)
 # ---------------------------------------------------------------------------------------
 
 
@@ -1340,99 +1328,3 @@ def _limited(dx, dy, dz, max_shift):
         s = max_shift / n
         return dx * s, dy * s, dz * s
     return dx, dy, dz
-
-
-@njit(**_JIT_SERIAL)
-def _relieve_chunk_2d(lo, hi, x, mass, origin, inv_h, inv_packed, shift, max_shift):
-    nx, ny = mass.shape
-    for p in range(lo, hi):
-        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
-        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
-        wx = (wx0, wx1, wx2)
-        wy = (wy0, wy1, wy2)
-        sx = _stencil_slopes(rx)
-        sy = _stencil_slopes(ry)
-        gx = 0.0
-        gy = 0.0
-        for a in range(3):
-            for b in range(3):
-                e = mass[bx + a, by + b] * inv_packed - 1.0
-                if e > 0.0:
-                    gx += sx[a] * wy[b] * e
-                    gy += wx[a] * sy[b] * e
-        dx, dy, _ = _limited(-shift * gx, -shift * gy, 0.0, max_shift)
-        x[p, 0] += dx
-        x[p, 1] += dy
-
-
-@njit(**_JIT_SERIAL)
-def _relieve_chunk_3d(lo, hi, x, mass, origin, inv_h, inv_packed, shift, max_shift):
-    nx, ny, nz = mass.shape
-    for p in range(lo, hi):
-        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
-        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
-        bz, rz, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
-        wx = (wx0, wx1, wx2)
-        wy = (wy0, wy1, wy2)
-        wz = (wz0, wz1, wz2)
-        sx = _stencil_slopes(rx)
-        sy = _stencil_slopes(ry)
-        sz = _stencil_slopes(rz)
-        gx = 0.0
-        gy = 0.0
-        gz = 0.0
-        for a in range(3):
-            for b in range(3):
-                for c in range(3):
-                    e = mass[bx + a, by + b, bz + c] * inv_packed - 1.0
-                    if e > 0.0:
-                        gx += sx[a] * wy[b] * wz[c] * e
-                        gy += wx[a] * sy[b] * wz[c] * e
-                        gz += wx[a] * wy[b] * sz[c] * e
-        dx, dy, dz = _limited(-shift * gx, -shift * gy, -shift * gz, max_shift)
-        x[p, 0] += dx
-        x[p, 1] += dy
-        x[p, 2] += dz
-
-
-@njit(**_JIT)
-def relieve_crowding_2d(x, mass, origin, inv_h, inv_packed, shift, max_shift, starts):
-    """Move particles down the gradient of the grid's excess packing (2-D, in place).
-
-    Parameters
-    ----------
-    x : ndarray of float64, shape (N, 2)
-        Particle positions [m], updated.
-    mass : ndarray of float64, shape (nx, ny)
-        Node masses [kg] (of this step's P2G).
-    origin : ndarray of float64, shape (2,)
-        Position of node 0 [m].
-    inv_h : float
-        Inverse node spacing [1/m].
-    inv_packed : float
-        Inverse of a node's mass at the seeded packing, ``1 / (rho h^2)`` [1/kg].
-    shift : float
-        ``kappa h`` [m]: the move is ``-shift`` times the gradient of the excess in grid
-        units (``-kappa h^2 grad e`` in metres).
-    max_shift : float
-        Largest move of a particle [m].
-    starts : ndarray of int64, shape (T + 1,)
-        Contiguous particle chunks, one per parallel task.
-    """
-    for t in prange(starts.shape[0] - 1):
-        _relieve_chunk_2d(
-            starts[t], starts[t + 1], x, mass, origin, inv_h, inv_packed, shift, max_shift
-        )
-
-
-@njit(**_JIT)
-def relieve_crowding_3d(x, mass, origin, inv_h, inv_packed, shift, max_shift, starts):
-    """Move particles down the gradient of the grid's excess packing (3-D, in place).
-
-    As :func:`relieve_crowding_2d`, with ``x`` of shape (N, 3), ``mass`` of shape
-    (nx, ny, nz) and ``inv_packed = 1 / (rho h^3)``.
-    """
-    for t in prange(starts.shape[0] - 1):
-        _relieve_chunk_3d(
-            starts[t], starts[t + 1], x, mass, origin, inv_h, inv_packed, shift, max_shift
-        )

@@ -25,7 +25,6 @@ __all__ = [
     "p2g",
     "particles_in_range",
     "poisson_matrix",
-    "relieve_crowding",
     "scatter_volume",
     "sort_by_cell",
     "stencil",
@@ -230,29 +229,6 @@ def _bspline(u):
     value = np.where(inner, 0.75 - u * u, 0.5 * np.clip(1.5 - a, 0.0, None) ** 2)
     slope = np.where(inner, -2.0 * u, -np.sign(u) * np.clip(1.5 - a, 0.0, None))
     return value, slope
-
-
-def relieve_crowding(x, mass, origin, inv_h, inv_packed, shift, max_shift):
-    """Positions moved by ``-shift grad_f e`` (f the position in grid units), at most
-    ``max_shift`` each, with ``e = max(m_i inv_packed - 1, 0)`` interpolated by the
-    quadratic B-splines: the twin of ``kernels.relieve_crowding_2d`` / ``_3d``."""
-    d = x.shape[1]
-    f = (x - origin) * inv_h
-    base = np.floor(f - 0.5).astype(np.int64)
-    grad = np.zeros_like(x)
-    excess = np.clip(mass * inv_packed - 1.0, 0.0, None)
-    for offset in itertools.product(range(3), repeat=d):
-        u = (base + np.array(offset)) - f  # node minus particle, grid units
-        value, slope = _bspline(u)
-        e = excess[tuple((base + np.array(offset)).T)]
-        for a in range(d):
-            # d/df_a of prod_b N(u_b) = -N'(u_a) prod_{b != a} N(u_b)
-            others = np.prod([value[:, b] for b in range(d) if b != a], axis=0)
-            grad[:, a] += -slope[:, a] * others * e
-    move = -shift * grad
-    norm = np.sqrt((move**2).sum(axis=1))
-    scale = np.where(norm > max_shift, max_shift / np.where(norm > 0, norm, 1.0), 1.0)
-    return x + move * scale[:, None]
 
 
 def scatter_volume(x, vol, origin, inv_h, shape):

@@ -58,8 +58,6 @@ RAMP_SHARE = 0.6  # share of the settling time over which gravity ramps up (damp
 PARALLEL_MIN_PARTICLES = 20_000  # smaller beds run on one thread (see _threads)
 GRID_PADDING = 3  # empty nodes around the vessel's bounding box (B-spline support + margin)
 DEFAULT_PHASES = 36
-#: Largest move of a particle in one step of the crowding relief, in cells.
-RELIEF_MAX_SHIFT = 0.01
 WALL_BAND = 0.5  # nodes closer to the wall than this many cells get the wall law (docs/flow.md)
 WALL_SKIN = 1e-3  # projected particles land this many cells inside the wall
 
@@ -111,7 +109,7 @@ class Material:
     poisson_ratio: float = 0.065
     friction_angle_deg: float = 27.1
     cohesion: float = 87.0
-    dilation_angle_deg: float = 0.1
+    dilation_angle_deg: float = 0.0
     wall_friction: float = 0.324
     stiffness_scaling: float = 1.0
     tension_cutoff: bool = True
@@ -330,7 +328,6 @@ class SolverSettings:
     # no defaults here: every value comes from the scene, whose schema holds them
     symmetry: str
     average_revolutions: int
-    crowding_relief: float
     density_projection: int
 
     @classmethod
@@ -382,7 +379,6 @@ class SolverSettings:
             seed=int(s["seed"]),
             symmetry=s["symmetry"],
             average_revolutions=average,
-            crowding_relief=float(s["crowding_relief"]),
             density_projection=int(s["density_projection"]),
         )
 
@@ -621,14 +617,14 @@ FILL_LOSS_WARN = 0.03
 def _warn_of_clipped_fill(attrs) -> None:
     """Warn when clipping the fill at 1 drops more than FILL_LOSS_WARN of the material.
 
-    The fill counts seeded particle volumes per cell, so a cell whose particles crowd
-    denser than they were seeded reads above 1 and is clipped: what it held beyond a
-    full cell is missing from the stored flow, whose bed is then smaller than the
-    scene's. Particles crowd so where no stress sees it (they move with the grid
-    velocity, their volumes with the affine matrix), the more the softer the material
-    and the more steps a run takes: the cohesionless E / 100 drum's fill holds 88-92 %,
-    at E / 10 97-99 %, the 40 % Tote 95 % (benchmarks/results/flow_crowding.md,
-    flow_drum.md; ``solver.crowding_relief`` reduces it).
+    The fill is the seeded particle volume per cell as the grid's B-splines see it, so
+    a cell the particles pack denser than they were seeded reads above 1 and is
+    clipped: what it held beyond a full cell is missing from the stored flow, whose bed
+    is then smaller than the scene's. Particles crowd so where no stress sees it (they
+    move with the grid velocity, their volumes with the affine matrix), the more the
+    softer the material and the more steps a run takes, unless the density projection
+    (``solver.density_projection``, on by default) moves them apart
+    (benchmarks/results/flow_crowding.md).
     """
     carried = attrs["fill_volume_m3"] / attrs["material_volume_m3"]
     if carried < 1.0 - FILL_LOSS_WARN:
@@ -698,7 +694,6 @@ class FlowSimulation:
         # inverse of a node's mass at the seeded packing (kernels.g2p_2d), the mu(I)
         # friction's constants
         packed_node = self.material.density * s.cell**self.ndim
-        self.inv_packed_node = 1.0 / packed_node
         self.stress_arguments = (
             self.material.return_arguments()
             + (1.0 / packed_node if self.material.lost_contact else 0.0,)
@@ -864,11 +859,6 @@ class FlowSimulation:
             p.x, p.v, p.C, p.vol, p.J, p.gap, p.stress, p.codes, g.velocity, g.mass, g.origin,
             inv_h, dt, self.stress_arguments, self.starts, g.g2p_work,
         )  # fmt: skip
-        if self.settings.crowding_relief > 0.0:
-            (mpm.relieve_crowding_3d if three else mpm.relieve_crowding_2d)(
-                p.x, g.mass, g.origin, inv_h, self.inv_packed_node,
-                self.settings.crowding_relief * g.h, RELIEF_MAX_SHIFT * g.h, self.starts,
-            )  # fmt: skip
         if self.projection is not None and self.steps % self.settings.density_projection == 0:
             self.projection(p.x, p.vol, g.origin, self.starts)
         if self.mirror:

@@ -1,0 +1,240 @@
+"""Collapse of a granular column onto a horizontal floor: a canonical benchmark with
+published measurements, at three cells.
+
+A 2-D column of width L0 = 0.1 m and height H0 = a L0 stands against the left wall of a
+box and is released at t = 0 (gravity switched on at once, ``solver.settle_time = 0``,
+the sudden removal of a gate); it spreads along the floor until it stops. Measured, for
+plane flows in a channel (quasi-2-D, many materials: sand, glass beads, rice, sugar):
+the runout (L∞ − L0) / L0 ≈ 1.2 a for a ≲ 1.8 and the final height H∞ = H0 for
+a ≲ 1.15, the top of the column staying in place (Lube, Huppert, Sparks and Freundt 2005,
+Phys. Rev. E 72, 041301). The constant of the runout depends on the material by some
+tens of percent in other channels (Balmforth and Kerswell 2005, J. Fluid Mech. 538,
+399: (l∞ − L)/L ∝ a^(0.9 ± 0.1) in wide channels).
+
+The solver runs with the scene defaults (Table 1's glass beads with c = 0, E unscaled,
+the floor's and the back wall's Coulomb friction ``material.wall_friction``, the density
+projection every 10 steps, ψ = 0), for 1 s, by which time every case has stopped (the
+largest speed at the end is reported). Variants: ``mu_i``, the μ(I) friction
+(``material.friction_angle_limit_deg = 37.7``, 1 mm grains, as flow_work_precision.py's
+runs); ``no_projection``, the flow before the projection and ψ = 0 were the defaults
+(no projection, Table 1's ψ = 0.1°). Cells 5, 2.5 and 1.25 mm (20, 40 and 80 cells
+across the column). The front is the 99.9th percentile of the particles' x (a few
+particles thrown ahead of the deposit do not count); the height the largest y at the
+back wall.
+
+Run: ``python benchmarks/flow_column.py [--case NAME ...]`` (2-D beds run on one
+thread, so two invocations with different cases share 2 cores). Writes
+``benchmarks/results/flow_column.{json,md,png}``; ``--report`` rewrites them from the
+JSON.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import RESULTS, machine_line, run_cases, table  # noqa: E402
+
+import blendxr as bx  # noqa: E402
+
+NAME = "flow_column"
+WIDTH = 0.1  # L0 [m]
+DURATION = 1.0  # [s]
+#: Lube et al. (2005): (L - L0) / L0 = RUNOUT_SLOPE a for a below RUNOUT_RANGE
+RUNOUT_SLOPE = 1.2
+RUNOUT_RANGE = 1.8
+HEIGHT_RANGE = 1.15  # H = H0 below this aspect ratio
+ASPECTS = (0.5, 1.0)
+CELLS = (0.005, 0.0025, 0.00125)
+VARIANTS = {
+    "default": {},
+    "mu_i": {"material": {"friction_angle_limit_deg": 37.7, "particle_diameter": 0.001}},
+    "no_projection": {
+        "material": {"dilation_angle_deg": 0.1},
+        "solver": {"density_projection": 0},
+    },
+}
+CASES = {
+    f"{variant}_a{a:g}_{cell * 1000:g}mm": (variant, a, cell)
+    for variant in VARIANTS
+    for a in ASPECTS
+    for cell in CELLS
+}
+
+
+def scene(a: float, cell: float, variant: str) -> dict:
+    """The column of aspect ratio ``a`` against the left wall of a box long enough for
+    twice the published runout."""
+    height = a * WIDTH
+    length = WIDTH * (1.0 + 2.0 * max(RUNOUT_SLOPE * a, 1.0)) + 0.1
+    box = [length, height + 0.03]
+    out = {
+        "name": f"column-a{a:g}",
+        "vessel": {"kind": "box", "ndim": 2, "size": box, "center": [b / 2 for b in box]},
+        "operation": {"rpm": 0.0, "duration": DURATION},
+        "material": {"cohesion": 0.0},
+        "fill": {"box": [[0.0, WIDTH], [0.0, height]]},
+        "flow": {"cell": cell},
+        "solver": {"settle_time": 0.0},
+    }
+    for section, values in VARIANTS[variant].items():
+        out.setdefault(section, {}).update(values)
+    return out
+
+
+def deposit_profile(x: np.ndarray, bin_width: float) -> tuple[np.ndarray, np.ndarray]:
+    """(bin centres, largest particle height per bin) of the deposit, empty bins left out."""
+    edges = np.arange(0.0, x[:, 0].max() + bin_width, bin_width)
+    index = np.digitize(x[:, 0], edges) - 1
+    tops = np.full(len(edges), -np.inf)
+    np.maximum.at(tops, index, x[:, 1])
+    keep = np.isfinite(tops)
+    return (edges + 0.5 * bin_width)[keep], tops[keep]
+
+
+def run_case(name: str) -> dict:
+    variant, a, cell = CASES[name]
+    started = time.perf_counter()
+    flow, particles = bx.solve_flow(scene(a, cell, variant), particles=True, progress=False)
+    wall = time.perf_counter() - started
+    x = particles["position"].values
+    v = particles["velocity"].values
+    front = float(np.quantile(x[:, 0], 0.999))
+    back = x[:, 0] < 0.1 * WIDTH
+    centres, tops = deposit_profile(x, cell)
+    return {
+        "case": name,
+        "variant": variant,
+        "aspect": a,
+        "cell_m": cell,
+        "runout": (front - WIDTH) / WIDTH,
+        "runout_max": (float(x[:, 0].max()) - WIDTH) / WIDTH,
+        "height": float(x[back, 1].max()) / (a * WIDTH),
+        "speed_max_end_m_s": float(np.abs(v).max()),
+        "particles": int(len(x)),
+        "steps": int(flow.attrs["steps"]),
+        "wall_s": wall,
+        "profile_x_m": centres.tolist(),
+        "profile_top_m": tops.tolist(),
+    }
+
+
+def published(a: float) -> tuple[float | None, float | None]:
+    """Lube et al.'s runout and height at aspect ratio ``a`` (None outside their fits)."""
+    runout = RUNOUT_SLOPE * a if a <= RUNOUT_RANGE else None
+    height = 1.0 if a <= HEIGHT_RANGE else None
+    return runout, height
+
+
+def summary(name: str, r: dict) -> str:
+    want, _ = published(r["aspect"])
+    return (
+        f"{name}: runout {r['runout']:.2f} (published {want}), height {r['height']:.3f}, "
+        f"{r['wall_s']:.0f} s"
+    )
+
+
+def _order(values: list[float]) -> str:
+    """Observed order of convergence over three cells halving each time."""
+    if len(values) != 3:
+        return ""
+    d1, d2 = values[1] - values[0], values[2] - values[1]
+    if d1 == 0 or d2 == 0 or d1 * d2 < 0:
+        return "none (not monotone)" if d1 * d2 < 0 else ""
+    return f"{np.log2(abs(d1 / d2)):.2f}"
+
+
+def report(results: dict, info: dict) -> str:
+    rows, trend = [], []
+    for name, (variant, a, cell) in CASES.items():
+        if name not in results:
+            continue
+        r = results[name]
+        runout, height = published(a)
+        rows.append([
+            name, variant, f"{a:g}", f"{cell * 1000:g}", f"{r['runout']:.2f}",
+            f"{runout:.2f}", f"{r['runout'] / runout - 1:+.0%}", f"{r['height']:.3f}",
+            f"{height:g}", f"{r['speed_max_end_m_s'] * 1000:.2f}", r["particles"],
+            f"{r['wall_s']:.0f}",
+        ])  # fmt: skip
+    for variant in VARIANTS:
+        for a in ASPECTS:
+            names = [f"{variant}_a{a:g}_{c * 1000:g}mm" for c in CELLS]
+            if all(n in results for n in names):
+                runs = [results[n]["runout"] for n in names]
+                trend.append([variant, f"{a:g}", " → ".join(f"{v:.2f}" for v in runs),
+                              _order(runs)])  # fmt: skip
+    return (
+        f"<!-- written by benchmarks/{NAME}.py -->\n"
+        "# Collapse of a granular column (2-D, against a wall)\n\n"
+        f"Machine: {machine_line(info)}.\n\n"
+        "Published: (L∞ − L0)/L0 ≈ 1.2 a for a ≲ 1.8 and H∞ = H0 for a ≲ 1.15 (Lube et "
+        "al. 2005, Phys. Rev. E 72, 041301, quasi-2-D channel, several materials). "
+        "runout: (front − L0)/L0, the front the 99.9th percentile of the particles' x; "
+        "height: the deposit's largest height at the back wall over H0; speed: the "
+        "largest particle speed at t = 1 s (the deposit has stopped when it is small). "
+        "default: the scene defaults (rate-independent Mohr–Coulomb, Table 1 with c = 0, "
+        "the density projection every 10 steps, ψ = 0); mu_i: the same with μ(I), μ2 = "
+        "tan 37.7°, 1 mm grains; no_projection: no projection and Table 1's ψ = 0.1°, "
+        "the defaults before.\n\n"
+        + table(
+            [
+                "case",
+                "variant",
+                "a",
+                "cell mm",
+                "runout",
+                "published",
+                "error",
+                "height",
+                "published",
+                "speed mm/s",
+                "particles",
+                "wall s",
+            ],
+            rows,
+        )  # fmt: skip
+        + "\n\n## The runout against the cell (5 → 2.5 → 1.25 mm)\n\n"
+        + table(["variant", "a", "runout", "observed order"], trend)
+        + f"\n\n![deposits]({NAME}.png)\n"
+    )
+
+
+def plot(results: dict) -> None:
+    fig, axes = plt.subplots(len(VARIANTS), len(ASPECTS), figsize=(11, 8), squeeze=False)
+    for row, variant in enumerate(VARIANTS):
+        for col, a in enumerate(ASPECTS):
+            ax = axes[row, col]
+            ax.plot([0, WIDTH, WIDTH], [a * WIDTH] * 2 + [0], "k:", lw=1, label="column")
+            runout, _ = published(a)
+            ax.axvline(WIDTH * (1 + runout), color="k", lw=1, label="published front")
+            for cell in CELLS:
+                r = results.get(f"{variant}_a{a:g}_{cell * 1000:g}mm")
+                if r:
+                    ax.plot(r["profile_x_m"], r["profile_top_m"], label=f"{cell * 1000:g} mm")
+            ax.set_title(f"{variant}, a = {a:g}", fontsize=9)
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("deposit top (m)")
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / f"{NAME}.png", dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    payload = run_cases(NAME, __doc__.splitlines()[0], CASES, run_case, report, summary)
+    plot(payload["cases"])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
