@@ -1141,7 +1141,7 @@ def g2p_3d(
 # plane belongs to the particle's image and is folded onto the cell it mirrors, with
 # its z momentum reversed.
 #
-# Serial: it runs every few steps and costs less than one P2G; a parallel version would
+# Serial: it runs every few steps and costs about one serial P2G; a parallel version would
 # need per-thread accumulators.
 # ---------------------------------------------------------------------------------------
 

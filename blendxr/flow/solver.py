@@ -1061,7 +1061,7 @@ class FlowSimulation:
         else:
             window = s.average_window or 0.25 * s.duration
         # at least 200 samples per phase bin: the averages of an intermittent granular
-        # flow need many (a B-spline deposit costs less than a P2G; flow_throughput.md)
+        # flow need many (a B-spline deposit costs about as much a particle as a P2G)
         per_window = window / dt
         return max(1, int(per_window / max(s.phases, 1) / 200))
 
