@@ -1189,6 +1189,9 @@ def deposit_2d(x, v, vol, origin_out, inv_h_out, inside, acc_vol, acc_mom):
     mx, my = acc_vol.shape
     wx = np.empty(3)
     wy = np.empty(3)
+    # the stencil's cells inside, gathered once: weight and (i, j) of each
+    w = np.empty(9)
+    cell = np.empty((9, 2), np.int64)
     for p in range(x.shape[0]):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
@@ -1196,29 +1199,26 @@ def deposit_2d(x, v, vol, origin_out, inv_h_out, inside, acc_vol, acc_mom):
             continue
         bi, wx[0], wx[1], wx[2] = _centre_stencil(fx)
         bj, wy[0], wy[1], wy[2] = _centre_stencil(fy)
+        n = 0
         total = 0.0
         for a in range(3):
             i = bi + a
-            if i < 0 or i >= mx:
-                continue
             for b in range(3):
                 j = bj + b
-                if 0 <= j < my and inside[i, j] != 0:
-                    total += wx[a] * wy[b]
+                if 0 <= i < mx and 0 <= j < my and inside[i, j] != 0:
+                    w[n] = wx[a] * wy[b]
+                    cell[n, 0], cell[n, 1] = i, j
+                    total += w[n]
+                    n += 1
         if total <= 0.0:
             continue
         scale = vol[p] / total
-        for a in range(3):
-            i = bi + a
-            if i < 0 or i >= mx:
-                continue
-            for b in range(3):
-                j = bj + b
-                if 0 <= j < my and inside[i, j] != 0:
-                    wv = scale * wx[a] * wy[b]
-                    acc_vol[i, j] += wv
-                    acc_mom[i, j, 0] += wv * v[p, 0]
-                    acc_mom[i, j, 1] += wv * v[p, 1]
+        for m in range(n):
+            i, j = cell[m, 0], cell[m, 1]
+            wv = scale * w[m]
+            acc_vol[i, j] += wv
+            acc_mom[i, j, 0] += wv * v[p, 0]
+            acc_mom[i, j, 1] += wv * v[p, 1]
 
 
 @njit(**_JIT_SERIAL)
@@ -1265,6 +1265,10 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_
     wz = np.empty(3)
     ks = np.empty(3, np.int64)
     sz = np.empty(3)
+    # the stencil's cells inside, gathered once: weight, z sign and (i, j, k) of each
+    w = np.empty(27)
+    sign = np.empty(27)
+    cell = np.empty((27, 3), np.int64)
     for p in range(x.shape[0]):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
@@ -1276,38 +1280,32 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_
         bk, wz[0], wz[1], wz[2] = _centre_stencil(fz)
         for c in range(3):
             ks[c], sz[c] = _folded(bk + c, mz, mirror_z)
+        n = 0
         total = 0.0
         for a in range(3):
             i = bi + a
-            if i < 0 or i >= mx:
-                continue
             for b in range(3):
                 j = bj + b
-                if j < 0 or j >= my:
+                if not (0 <= i < mx and 0 <= j < my):
                     continue
                 for c in range(3):
                     k = ks[c]
                     if k >= 0 and inside[i, j, k] != 0:
-                        total += wx[a] * wy[b] * wz[c]
+                        w[n] = wx[a] * wy[b] * wz[c]
+                        sign[n] = sz[c]
+                        cell[n, 0], cell[n, 1], cell[n, 2] = i, j, k
+                        total += w[n]
+                        n += 1
         if total <= 0.0:
             continue
         scale = vol[p] / total
-        for a in range(3):
-            i = bi + a
-            if i < 0 or i >= mx:
-                continue
-            for b in range(3):
-                j = bj + b
-                if j < 0 or j >= my:
-                    continue
-                for c in range(3):
-                    k = ks[c]
-                    if k >= 0 and inside[i, j, k] != 0:
-                        wv = scale * wx[a] * wy[b] * wz[c]
-                        acc_vol[i, j, k] += wv
-                        acc_mom[i, j, k, 0] += wv * v[p, 0]
-                        acc_mom[i, j, k, 1] += wv * v[p, 1]
-                        acc_mom[i, j, k, 2] += wv * sz[c] * v[p, 2]
+        for m in range(n):
+            i, j, k = cell[m, 0], cell[m, 1], cell[m, 2]
+            wv = scale * w[m]
+            acc_vol[i, j, k] += wv
+            acc_mom[i, j, k, 0] += wv * v[p, 0]
+            acc_mom[i, j, k, 1] += wv * v[p, 1]
+            acc_mom[i, j, k, 2] += wv * sign[m] * v[p, 2]
 
 
 # ---------------------------------------------------------------------------------------
