@@ -104,22 +104,23 @@ class Material:
         Solid fraction: the grain density is density / packing_fraction.
     """
 
-    density: float = 1500.0
-    youngs_modulus: float = 3.65e6
-    poisson_ratio: float = 0.065
-    friction_angle_deg: float = 27.1
-    cohesion: float = 87.0
-    dilation_angle_deg: float = 0.0
-    wall_friction: float = 0.324
-    stiffness_scaling: float = 1.0
-    tension_cutoff: bool = True
-    lost_contact: bool = True
-    friction_angle_limit_deg: float | None = None
-    inertial_number_i0: float = 0.279
-    particle_diameter: float = 0.012
-    packing_fraction: float = 0.6
-    bulk_viscosity_linear: float = 0.06
-    bulk_viscosity_quadratic: float = 1.2
+    # no defaults here: every value comes from the scene, whose schema holds them
+    density: float
+    youngs_modulus: float
+    poisson_ratio: float
+    friction_angle_deg: float
+    cohesion: float
+    dilation_angle_deg: float
+    wall_friction: float
+    stiffness_scaling: float
+    tension_cutoff: bool
+    lost_contact: bool
+    friction_angle_limit_deg: float | None
+    inertial_number_i0: float
+    particle_diameter: float
+    packing_fraction: float
+    bulk_viscosity_linear: float
+    bulk_viscosity_quadratic: float
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Material:
