@@ -195,10 +195,10 @@ def deposit(x, v, vol, origin_out, inv_h_out, inside, mirror_z=False):
         share = np.where(keep, vol * weight / np.where(keep, total, 1.0), 0.0)
         index = tuple(cell.T)
         np.add.at(acc_vol, index, share)
-        vel = v.copy()
+        momentum = share[:, None] * v
         if mirror_z:
-            vel[:, 2] *= sign
-        np.add.at(acc_mom, index, share[:, None] * vel)
+            momentum[:, 2] *= sign
+        np.add.at(acc_mom, index, momentum)
     return acc_vol, acc_mom
 
 
