@@ -46,38 +46,52 @@ TOTE_REVOLUTIONS = 3
 PROJECT_EVERY = 10
 #: Table 1's dilation angle, the default before the projection was
 TABLE_1_PSI = 0.1
-#: case -> (vessel, cell [m], steps between density projections (0: none), ψ [deg])
+#: case -> (vessel, cell [m], steps between density projections (0: none), ψ [deg],
+#: fill fraction (Tote only))
 CASES = {
-    "drum_2.5mm": ("drum", 0.0025, 0, TABLE_1_PSI),
-    "drum_2.5mm_projection": ("drum", 0.0025, PROJECT_EVERY, TABLE_1_PSI),
-    "drum_1.75mm": ("drum", 0.00175, 0, TABLE_1_PSI),
-    "drum_1.75mm_projection": ("drum", 0.00175, PROJECT_EVERY, TABLE_1_PSI),
-    "tote40": ("tote", TOTE_CELL, 0, TABLE_1_PSI),
-    "tote40_projection": ("tote", TOTE_CELL, PROJECT_EVERY, TABLE_1_PSI),
+    "drum_2.5mm": ("drum", 0.0025, 0, TABLE_1_PSI, None),
+    "drum_2.5mm_projection": ("drum", 0.0025, PROJECT_EVERY, TABLE_1_PSI, None),
+    "drum_1.75mm": ("drum", 0.00175, 0, TABLE_1_PSI, None),
+    "drum_1.75mm_projection": ("drum", 0.00175, PROJECT_EVERY, TABLE_1_PSI, None),
+    "tote40": ("tote", TOTE_CELL, 0, TABLE_1_PSI, 0.4),
+    "tote40_projection": ("tote", TOTE_CELL, PROJECT_EVERY, TABLE_1_PSI, 0.4),
     # the defaults: the projection with no dilation (Table 1's 0.1 deg is a near-zero
     # value of the kind Abaqus's smooth flow potential runs with): a bed whose spacing
     # follows J no longer grows with J's drift
-    "drum_2.5mm_projection_psi0": ("drum", 0.0025, PROJECT_EVERY, 0.0),
-    "tote40_projection_psi0": ("tote", TOTE_CELL, PROJECT_EVERY, 0.0),
+    "drum_2.5mm_projection_psi0": ("drum", 0.0025, PROJECT_EVERY, 0.0, None),
+    "tote40_projection_psi0": ("tote", TOTE_CELL, PROJECT_EVERY, 0.0, 0.4),
 }
+#: the defaults at every cell the packing target names (issue: 20 to 7.5 mm in the Tote
+#: at 40 and 60 %, 5 to 1.75 mm in the drum), with the packing histogram
+for _mm in (5.0, 3.5, 2.5, 1.75):
+    CASES[f"default_drum_{_mm:g}mm"] = ("drum", _mm / 1000, PROJECT_EVERY, 0.0, None)
+for _fill in (0.4, 0.6):
+    for _mm in (20.0, 15.0, 12.5, 10.0, 7.5):
+        CASES[f"default_tote{_fill * 100:.0f}_{_mm:g}mm"] = (
+            "tote",
+            _mm / 1000,
+            PROJECT_EVERY,
+            0.0,
+            _fill,
+        )
 COMPONENTS = ("vx", "vy", "vz")
 #: the mixing answer on the Tote's flow, as flow_tote_drift reports it (top-bottom loading)
 MIX = {"revolutions": 5, "cells": 50, "output_every": 0.5, "progress": False}
 
 
-def scene(vessel: str, cell: float, projection: int, psi: float) -> dict:
+def scene(vessel: str, cell: float, projection: int, psi: float, fill: float | None) -> dict:
     if vessel == "drum":
         out = flow_drum.scene(cell, 0.0)
     else:
-        out = flow_tote.tote(0.4, cell, flow_tote.DEFAULT_SCALING, TOTE_REVOLUTIONS)
+        out = flow_tote.tote(fill, cell, flow_tote.DEFAULT_SCALING, TOTE_REVOLUTIONS)
     out["solver"]["density_projection"] = projection
     out.setdefault("material", {})["dilation_angle_deg"] = psi
     return out
 
 
 def run_case(name: str) -> dict:
-    vessel, cell, projection, psi = CASES[name]
-    spec = scene(vessel, cell, projection, psi)
+    vessel, cell, projection, psi, fill = CASES[name]
+    spec = scene(vessel, cell, projection, psi, fill)
     started = time.perf_counter()
     flow = bx.solve_flow(spec, progress=False)
     wall = time.perf_counter() - started
@@ -96,6 +110,8 @@ def run_case(name: str) -> dict:
         "fill_deposit": "B-spline",
         "fill_share": float(a["fill_volume_m3"] / a["material_volume_m3"]),
         "fill_clipped_max": float(a["fill_clipped_max"]),
+        "fill_fraction": fill,
+        **{k: _plain(a[k]) for k in a if k.startswith(("fill_histogram", "fill_share_above"))},
         "occupied_volume_over_seeded": float(a["occupied_volume_over_seeded"]),
         "current_volume_over_seeded": float(a["current_volume_over_seeded"]),
     }
@@ -117,6 +133,10 @@ def run_case(name: str) -> dict:
             mix_rsd=bx.mix(flow, **MIX)["rsd"].values.tolist(),
         )
     return out
+
+
+def _plain(value):
+    return value.tolist() if hasattr(value, "tolist") else value
 
 
 def _share(r: dict) -> list:
@@ -149,7 +169,8 @@ def report(results: dict, info: dict) -> str:
         for name, r in done if r["vessel"] == "drum"
     ]  # fmt: skip
     totes = [
-        [name, f"{r['cell_m'] * 1000:g}", f"{r.get('density_projection', 0)}", *_share(r),
+        [name, f"{100 * (r.get('fill_fraction') or 0.4):.0f} %", f"{r['cell_m'] * 1000:g}",
+         f"{r.get('density_projection', 0)}", *_share(r),
          percent_xyz(r["eq30_lab"]), percent_xyz(r["eq30_noise"]),
          f"{r['mix_rsd'][-1]:.3f}" if "mix_rsd" in r else "n/a", f"{r['wall_s']:.0f}"]
         for name, r in done if r["vessel"] == "tote"
@@ -191,13 +212,14 @@ def report(results: dict, info: dict) -> str:
             ],
             drums,
         )  # fmt: skip
-        + "\n\n## Tote (40 %, 10 rpm, 12.5 mm, E/10, three revolutions)\n\n"
+        + "\n\n## Tote (10 rpm, E/10, three revolutions)\n\n"
         "eq. (30) between revolutions 2 and 3, lab frame, and its sampling-noise part; "
         "RSD: `bx.mix` on the flow of revolution 3, five revolutions, top-bottom loading, "
         "50 cells (as flow_tote_drift.md).\n\n"
         + table(
             [
                 "case",
+                "fill",
                 "cell mm",
                 "projection",
                 *share,
@@ -208,6 +230,35 @@ def report(results: dict, info: dict) -> str:
             ],
             totes,
         )  # fmt: skip
+        + "\n\n"
+        + _histogram_section(done)
+    )
+
+
+def _histogram_section(done: list) -> str:
+    """The packing histogram per case (the runs that recorded it)."""
+    rows, edges = [], None
+    for name, r in done:
+        if "fill_histogram" not in r:
+            continue
+        edges = r["fill_histogram_edges"]
+        rows.append(
+            [name, f"{r['cell_m'] * 1000:g}", *(f"{v:.1%}" for v in r["fill_histogram"]),
+             f"{r['fill_share_above_1_15_wall']:.2%}",
+             f"{r['fill_share_above_1_15_interior']:.2%}", f"{r['fill_clipped_max']:.2f}"]
+        )  # fmt: skip
+    if not rows:
+        return ""
+    bins = [f"[{a:g}, {b:g})" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    bins.append(f"≥ {edges[-1]:g}")
+    return (
+        "## Packing histogram\n\n"
+        "The phase-averaged fill before clipping (the seeded volume per output cell, "
+        "B-spline deposit) over every phase bin of the recorded revolution, on the "
+        "bed's cells (fill ≥ 0.5): the share of them in each bin, and the share above "
+        "1.15 apart for the cells within two cells of the wall and the rest "
+        "(`fill_histogram*` attributes of the flow).\n\n"
+        + table(["case", "cell mm", *bins, "> 1.15 wall", "> 1.15 interior", "max"], rows)
         + "\n"
     )
 

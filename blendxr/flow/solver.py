@@ -1307,6 +1307,44 @@ def node_packing(sim: FlowSimulation, quantiles=(0.5, 0.99, 1.0)) -> dict:
     return {f"node_packing_q{round(100 * q):g}": float(np.quantile(ratio, q)) for q in quantiles}
 
 
+#: bin edges of :func:`fill_histogram` (raw fill over the seeded packing; the last bin
+#: takes everything above its lower edge)
+FILL_HISTOGRAM_EDGES = (0.5, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2, 1.3, 1.5)
+#: cells within this many cells of the first cell outside the vessel count as "wall"
+WALL_LAYERS = 2.0
+
+
+def fill_histogram(raw: np.ndarray, vessel: np.ndarray) -> dict:
+    """The packing histogram of the phase-averaged fill before clipping.
+
+    Over every phase bin and every output cell whose raw fill is at least 0.5 (the
+    bed), the share of those cells in each bin of :data:`FILL_HISTOGRAM_EDGES`, for all
+    of them and apart for the cells next to the wall (within :data:`WALL_LAYERS` cells of
+    the first cell outside the vessel) and the rest, with the share above 1.15 (the
+    packing a granular bed cannot exceed by much).
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    depth = distance_transform_edt(np.asarray(vessel) > 0)
+    wall = np.broadcast_to(depth <= WALL_LAYERS, raw.shape)
+    bed = raw >= FILL_HISTOGRAM_EDGES[0]
+    edges = np.array([*FILL_HISTOGRAM_EDGES, np.inf])
+    out = {"fill_histogram_edges": np.array(FILL_HISTOGRAM_EDGES)}
+    for label, pick in (("", bed), ("_wall", bed & wall), ("_interior", bed & ~wall)):
+        values = raw[pick]
+        counts = np.histogram(values, edges)[0]
+        share = counts / max(values.size, 1)
+        out[f"fill_histogram{label}"] = share
+        out[f"fill_share_above_1_15{label}"] = float(np.mean(values > 1.15)) if values.size else 0.0
+    out["fill_histogram_definition"] = (
+        "share of the bed's cells (phase-averaged fill before clipping >= 0.5, every "
+        "phase bin) in each bin [edge_i, edge_i+1) of fill_histogram_edges, the last "
+        "open; _wall: the cells within 2 cells of the first cell outside the vessel, "
+        "_interior: the rest"
+    )
+    return out
+
+
 def occupied_volume_over_seeded(sim: FlowSimulation) -> float:
     """The volume the particles occupy, from their spacing, over their seeded volume.
 
@@ -1383,6 +1421,7 @@ def _flow_from(
         "current_volume_over_seeded": sim.particles.volume_over_seeded,
         "occupied_volume_over_seeded": occupied_volume_over_seeded(sim),
         "fill_clipped_max": float(raw.max()),
+        **fill_histogram(raw, sim.out_vessel),
         "projected_particles": sim.projected,
         "reflected_particles": sim.reflected,
         **_projection_attrs(sim),
