@@ -11,8 +11,10 @@ and peak memory go into the report.
 from __future__ import annotations
 
 import contextlib
+import difflib
 import functools
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -22,11 +24,15 @@ import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._version import __version__
-from .scene import Scene, load_scene
+from .scene import Scene, SceneError, load_scene
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 __all__ = [
     "FLOW_SECTIONS",
@@ -97,6 +103,66 @@ class FlowSource:
         return "flow: solved (cache off)"
 
 
+#: analytic flow parameters that come from the scene's other sections, never twice
+ANALYTIC_FROM_SCENE = {"rpm": "operation.rpm", "gravity": "operation.gravity"}
+#: scene values that only the solver's flows use
+SOLVER_ONLY = ("flow.cell", "flow.phases")
+
+
+def analytic_flow(scene) -> xr.Dataset:
+    """The analytic flow a scene names (``flow.analytic``), made with its
+    ``flow.parameters`` and the scene's ``operation.rpm`` and ``operation.gravity``.
+
+    Raises
+    ------
+    SceneError
+        A parameter the flow does not take (with the nearest one it does), rpm or
+        gravity given as a parameter (they are the scene's ``operation`` values), or a
+        value set that only the solver's flows use (``flow.cell``, ``flow.phases``,
+        the ``solver`` section), named.
+    """
+    from . import flows
+
+    scene = load_scene(scene)
+    name = scene["flow"]["analytic"]
+    maker = getattr(flows, name)
+    params = dict(scene["flow"].get("parameters", {}))
+    allowed = list(inspect.signature(maker).parameters)
+    faults = []
+    for key in params:
+        if key in ANALYTIC_FROM_SCENE:
+            faults.append(
+                f"flow.parameters.{key}: set {ANALYTIC_FROM_SCENE[key]} instead (one value "
+                "for the flow and the mixing)"
+            )
+        elif key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f"did you mean flow.parameters.{close[0]}?" if close else "allowed: "
+            allowed_here = [a for a in allowed if a not in ANALYTIC_FROM_SCENE]
+            faults.append(
+                f"flow.parameters.{key} is not a parameter of the analytic flow {name}; "
+                + (hint if close else hint + ", ".join(allowed_here))
+            )
+    for key in SOLVER_ONLY:
+        if scene.given(key) is not None:
+            faults.append(
+                f"{key} is used by the solver's flows only; the analytic flow {name} "
+                "makes its own grid (flow.parameters.cells)"
+            )
+    if scene.given("solver") is not None:
+        faults.append(
+            f"the solver section is used by flow.source = 'solver' only, not by the "
+            f"analytic flow {name}"
+        )
+    if faults:
+        raise SceneError(faults)
+    for key, dotted in ANALYTIC_FROM_SCENE.items():
+        section, field = dotted.split(".")
+        if key in allowed:
+            params[key] = scene[section][field]
+    return maker(**params)
+
+
 def scene_flow(
     scene,
     *,
@@ -128,7 +194,7 @@ def scene_flow(
     flow : xarray.Dataset
     source : FlowSource
     """
-    from . import flows, solve_flow
+    from . import solve_flow
     from .io import open_flow, write_dataset, write_json
 
     scene = load_scene(scene)
@@ -136,8 +202,7 @@ def scene_flow(
         return open_flow(flow_path), FlowSource("file", path=str(flow_path))
     spec = scene["flow"]
     if spec["source"] == "analytic":
-        maker = getattr(flows, spec["analytic"])
-        return maker(**spec.get("parameters", {})), FlowSource("analytic", path=spec["analytic"])
+        return analytic_flow(scene), FlowSource("analytic", path=spec["analytic"])
     if spec["source"] == "file":
         return open_flow(spec["path"]), FlowSource("file", path=spec["path"])
     if not use_cache:

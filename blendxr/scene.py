@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import math
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -68,6 +69,17 @@ def _describe(error: jsonschema.ValidationError) -> str:
         choices = " or ".join(_allowed(option) for option in schema["oneOf"])
         return f"{key} = {error.instance!r} is not allowed; allowed: {choices}"
     return f"{key}: {error.message}"
+
+
+def _non_finite(value, key: str = "") -> list[str]:
+    """'operation.rpm = nan is not a finite number' for every NaN or infinity inside."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [f"{key or 'scene'} = {value!r} is not a finite number"]
+    if isinstance(value, dict):
+        return [f for k, v in value.items() for f in _non_finite(v, f"{key}.{k}" if key else k)]
+    if isinstance(value, list):
+        return [f for i, v in enumerate(value) for f in _non_finite(v, f"{key}.{i}")]
+    return []
 
 
 def _allowed(schema: dict) -> str:
@@ -154,6 +166,7 @@ def check_values(values: Mapping[str, Any]) -> None:
     for key, value in values.items():
         if value is None:
             continue
+        faults.extend(_non_finite(value, key))
         validator = jsonschema.Draft202012Validator(_key_schema(key))
         for error in validator.iter_errors(value):
             error.path.extendleft(reversed(key.split(".")))
@@ -238,9 +251,8 @@ class Scene(Mapping):
         schema = _scene_schema()
         raw = json.loads(json.dumps(dict(data)))  # plain, JSON-like copy
         validator = jsonschema.Draft202012Validator(schema)
-        faults = sorted(
-            (_describe(e) for e in validator.iter_errors(raw)),
-        )
+        # NaN compares false with every bound, so the schema's ranges cannot catch it
+        faults = sorted([*_non_finite(raw), *(_describe(e) for e in validator.iter_errors(raw))])
         if faults:
             raise SceneError(faults)
         self._raw = raw  # as given: overrides are applied to it, then defaults again
@@ -277,6 +289,16 @@ class Scene(Mapping):
     def name(self) -> str:
         """The scene's name."""
         return self._data["name"]
+
+    def given(self, key: str) -> Any:
+        """The value a dotted key (``"flow.cell"``) or section (``"solver"``) was given,
+        before defaults: None where the scene left it to its default."""
+        value: Any = self._raw
+        for part in key.split("."):
+            if not isinstance(value, dict) or part not in value:
+                return None
+            value = value[part]
+        return copy.deepcopy(value)
 
     def to_dict(self) -> dict:
         """A deep copy of the scene as plain dictionaries (defaults filled in)."""

@@ -48,6 +48,12 @@ def test_load_scene_sets_values_by_dotted_key_and_keeps_the_rest():
         ({"mixing.k1": -1}, ["mixing.k1", ">= 0"]),
         ({"numerics.scheme": "upwind"}, ["numerics.scheme", "finite-volume"]),
         ({"nosection.k1": 1}, ["nosection.k1", "not a scene key"]),
+        # NaN passes every range comparison: refused before the ranges are checked
+        ({"operation.rpm": math.nan}, ["operation.rpm = nan", "not a finite number"]),
+        ({"solver.stiffness_scaling": math.inf}, ["solver.stiffness_scaling = inf"]),
+        ({"mixing.snapshots": [1.0, -math.inf]}, ["mixing.snapshots.1 = -inf"]),
+        ({"mixing.revolutions": 1e9}, ["mixing.revolutions", "<= 100000"]),
+        ({"mixing.k1": 1e6}, ["mixing.k1", "<= 10"]),
     ],
 )
 def test_a_wrong_key_or_value_is_refused_naming_it(values, words):
@@ -55,6 +61,40 @@ def test_a_wrong_key_or_value_is_refused_naming_it(values, words):
         bx.load_scene("tote-small", values)
     for word in words:
         assert word in str(err.value)
+
+
+def test_a_solver_speed_above_the_critical_one_is_refused_with_the_limit():
+    """Froude number 1 at the farthest wall: the drum of 150 mm centrifuges above
+    sqrt(g / R) = 109.2 rpm (R = 75 mm)."""
+    from blendxr.flow.solver import FlowSimulation
+
+    critical = 60.0 / (2.0 * math.pi) * math.sqrt(9.81 / 0.075)
+    with pytest.raises(bx.SceneError, match=f"<= {critical:.4g}"):
+        FlowSimulation(bx.load_scene("drum-2d-mpm", **{"operation.rpm": 1.05 * critical}))
+
+
+@pytest.mark.parametrize(
+    "values, words",
+    [
+        ({"flow.parameters.omegga": 1}, ["flow.parameters.omegga", "rolling_drum", "allowed"]),
+        ({"flow.parameters.fill_dept": 0.3}, ["did you mean flow.parameters.fill_depth"]),
+        ({"flow.parameters.rpm": 5.0}, ["flow.parameters.rpm", "operation.rpm"]),
+        ({"flow.cell": 0.01}, ["flow.cell", "solver's flows only"]),
+        ({"solver.cell": 0.01}, ["solver section", "analytic flow rolling_drum"]),
+    ],
+)
+def test_an_analytic_flow_refuses_values_it_would_ignore(values, words):
+    scene = bx.load_scene("drum-2d", values)
+    with pytest.raises(bx.SceneError) as err:
+        pipeline.analytic_flow(scene)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_an_analytic_flow_turns_at_the_scenes_rpm():
+    scene = bx.load_scene("drum-2d", **{"operation.rpm": 7.5, "flow.parameters.cells": 24})
+    flow = pipeline.analytic_flow(scene)
+    assert flow.attrs["rpm"] == 7.5
 
 
 def test_a_typo_in_a_scene_file_is_refused(tmp_path):

@@ -355,6 +355,14 @@ class SolverSettings:
                 f"solver.revolutions / 2 = {int(s['revolutions']) / 2:g} (the average of the "
                 "last revolutions is compared with the average of as many before)"
             )
+        critical = critical_rpm(vessel, float(op["gravity"]))
+        if rpm > critical:
+            faults.append(
+                f"operation.rpm = {rpm:g} is out of range; allowed: <= {critical:.4g}, this "
+                "vessel's critical speed (the wall farthest from the axis feels the "
+                "centripetal acceleration of gravity there: the bed centrifuges instead "
+                "of tumbling, a flow this solver does not model)"
+            )
         duration = op.get("duration")
         if rpm == 0 and duration is None:
             faults.append("operation.duration: needed when operation.rpm = 0")
@@ -382,6 +390,18 @@ class SolverSettings:
             average_revolutions=average,
             density_projection=int(s["density_projection"]),
         )
+
+
+def critical_rpm(vessel, gravity: float) -> float:
+    """The speed at which the wall farthest from the rotation axis (the z axis through
+    the origin) moves on a circle whose centripetal acceleration equals gravity:
+    Froude number omega^2 R / g = 1, where a bed centrifuges."""
+    lower, upper = (np.asarray(b, float) for b in vessel.bounds)
+    axes = [np.linspace(lo, hi, 49) for lo, hi in zip(lower, upper, strict=True)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(axes))
+    inside = points[vessel.sdf(points) <= 0.0]
+    reach = float(np.hypot(inside[:, 0], inside[:, 1]).max()) if len(inside) else 0.0
+    return 60.0 / (2.0 * math.pi) * math.sqrt(gravity / max(reach, 1e-12))
 
 
 # ----------------------------------------------------------------------------- phases
