@@ -143,22 +143,43 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
-def _cmd_validate(args) -> int:
-    import xarray as xr
+def _one_line(err: BaseException) -> str:
+    """An error as one line: an OSError by its own words and file, not its errno."""
+    if isinstance(err, OSError) and err.strerror:
+        text = err.strerror
+        if err.filename and str(err.filename) not in text:
+            text = f"{err.filename}: {text}"
+        return " ".join(text.split())
+    return " ".join(str(err).split())
 
+
+def _cmd_validate(args) -> int:
+    """Every file checked and named; status 2 when any fails."""
+    from .io import open_dataset
     from .schema import validate
 
+    faults = []
     for path in args.files:
-        with xr.open_dataset(path, chunks={}) as ds:
-            validate(ds)
-        print(f"{path}: valid {ds.attrs.get('blendxr_schema')}")
-    return 0
+        try:
+            with open_dataset(path) as ds:
+                validate(ds)
+                print(f"{path}: valid {ds.attrs.get('blendxr_schema')}")
+        except (ValueError, OSError) as err:
+            message = _one_line(err)
+            faults.append(message if str(path) in message else f"{path}: {message}")
+    if len(args.files) == 1 and faults:
+        print(f"blendxr: error: {faults[0]}", file=sys.stderr)
+    elif faults:
+        for line in faults:
+            print(f"blendxr: error: {line}", file=sys.stderr)
+        print(f"blendxr: {len(faults)} of {len(args.files)} files not valid", file=sys.stderr)
+    return 2 if faults else 0
 
 
 def _cmd_info(args) -> int:
-    import xarray as xr
+    from .io import open_dataset
 
-    with xr.open_dataset(args.file, chunks={}) as ds:
+    with open_dataset(args.file) as ds:
         print(ds)
     return 0
 
@@ -186,6 +207,9 @@ def _parser() -> argparse.ArgumentParser:
         prog="blendxr", description="Mixing of powders in tumbling blenders, from flow to RSD."
     )
     parser.add_argument("--version", action="version", version=f"blendxr {__version__}")
+    parser.add_argument(
+        "--debug", action="store_true", help="show the traceback of an error (before the verb)"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add_mix_arguments(p):
@@ -281,6 +305,8 @@ def main(argv=None) -> int:
     import warnings
 
     args = _parser().parse_args(argv)
+    if args.debug:
+        return args.func(args)
     try:
         with warnings.catch_warnings():  # restored on return, for callers in the process
             warnings.showwarning = _show_warning
@@ -289,13 +315,21 @@ def main(argv=None) -> int:
         print("blendxr: interrupted", file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError, NotImplementedError, OSError, FloatingPointError) as err:
-        message = " ".join(str(err).split())
+        message = _one_line(err)
         print(f"blendxr: error: {message}", file=sys.stderr)
         return 2
     except RuntimeError as err:  # a run that went unstable or stopped early
         message = " ".join(str(err).split())
         print(f"blendxr: stopped: {message}", file=sys.stderr)
         return 1
+    except Exception as err:  # a fault of blendxr's own: one line, the traceback on request
+        message = " ".join(str(err).split())
+        print(
+            f"blendxr: internal error: {type(err).__name__}: {message} (run `blendxr --debug "
+            "...` for the traceback, and report it)",
+            file=sys.stderr,
+        )
+        return 3
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import contextlib
 import errno
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -69,6 +70,10 @@ def _new_file_mode(path: Path) -> int:
     return 0o644
 
 
+#: free space below which a failed write is reported as a full disk
+_LOW_SPACE = 16 * 2**20
+
+
 @contextlib.contextmanager
 def _atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside `path`; on success it replaces `path`, else vanishes."""
@@ -86,6 +91,19 @@ def _atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         _fsync_path(tmp)
         os.chmod(tmp, _new_file_mode(target))
         os.replace(tmp, target)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        # the netCDF library reports a full disk as "NetCDF: HDF error": say what it is
+        free = shutil.disk_usage(parent).free
+        if exc.errno == errno.ENOSPC or free < _LOW_SPACE:
+            raise OSError(
+                errno.ENOSPC,
+                f"cannot write {target}: no space left on the device ({free / 2**20:.0f} MiB "
+                f"free in {parent}); the previous file, if any, is untouched",
+                str(target),
+            ) from exc
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -205,12 +223,38 @@ def _chunks_for(ds_dims: Mapping[str, int], lead: str, chunks):
     return chunks
 
 
-def _open(path, schema: str, chunks) -> xr.Dataset:
+def _existing_file(path) -> Path:
     path = Path(path)
     if not path.is_file():
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, f"{path} is a directory, not a file", str(path))
         if path.exists():
-            raise IsADirectoryError(errno.EISDIR, f"not a file: {path}", str(path))
+            raise OSError(errno.EINVAL, f"{path} is not a regular file", str(path))
         raise FileNotFoundError(errno.ENOENT, f"no such file: {path}", str(path))
+    return path
+
+
+def open_dataset(path: str | os.PathLike) -> xr.Dataset:
+    """Open any netCDF file lazily, with a clear error when it is not one.
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError
+        No such file, or a directory.
+    SchemaError
+        The file is not readable netCDF (named, with the reason).
+    """
+    path = _existing_file(path)
+    try:
+        return xr.open_dataset(path, engine="netcdf4", chunks={})
+    except (OSError, ValueError) as exc:
+        raise SchemaError(
+            [f"not a readable netCDF file ({type(exc).__name__}: {exc})"], source=str(path)
+        ) from exc
+
+
+def _open(path, schema: str, chunks) -> xr.Dataset:
+    path = _existing_file(path)
     try:
         # Open once without dask to learn the dims; the cost is the header only.
         with xr.open_dataset(path, engine="netcdf4") as probe:

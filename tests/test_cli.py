@@ -46,6 +46,15 @@ def test_mix_writes_valid_files_and_a_picture(tmp_path, capsys):
         (["mix", "swirl-2d", "--k1", "-1"], "k1"),
         (["mix", "swirl-2d", "--dt", "1000", "--revolutions", "0.1"], "stability limit"),
         (["validate", "missing.nc"], "missing.nc"),
+        (["validate", "."], "is a directory"),
+        (["info", "."], "is a directory"),
+        (["mix", "swirl-2d", "--cells", "100000"], "MiB"),
+        (["mix", "swirl-2d", "--output-every", "1e-12"], "records"),
+        (["mix", "swirl-2d", "--revolutions", "1e9"], "<= 100000"),
+        (["mix", "swirl-2d", "--set", "flow.parameters.omegga=1"], "omegga"),
+        (["flow", "drum-2d-mpm", "--set", "operation.rpm=nan"], "not a finite number"),
+        (["flow", "drum-2d-mpm", "--set", "solver.stiffness_scaling=inf"], "finite"),
+        (["flow", "drum-2d-mpm", "--set", "operation.rpm=1e6"], "critical speed"),
     ],
 )
 def test_bad_input_gives_one_line_and_status_2(argv, word, tmp_path, capsys, monkeypatch):
@@ -53,6 +62,38 @@ def test_bad_input_gives_one_line_and_status_2(argv, word, tmp_path, capsys, mon
     assert main([*argv, "-q"] if argv[0] == "mix" else argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err
+
+
+def test_validate_names_every_failing_file_and_goes_on(tmp_path, capsys):
+    flow = bx.flows.uniform(velocity=(0.1, 0.0), cells=8)
+    bx.write_dataset(flow, tmp_path / "good.nc")
+    (tmp_path / "text.nc").write_text("not netCDF")
+    files = [str(tmp_path / n) for n in ("text.nc", "good.nc", "gone.nc")]
+    assert main(["validate", *files]) == 2
+    captured = capsys.readouterr()
+    assert "good.nc: valid flow/1" in captured.out
+    err = captured.err.splitlines()
+    assert "text.nc" in err[0] and "not a readable netCDF file" in err[0]
+    assert "gone.nc" in err[1] and "no such file" in err[1]
+    assert err[2] == "blendxr: 2 of 3 files not valid"
+
+
+def test_debug_shows_the_traceback(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(bx.SceneError):
+        main(["--debug", "mix", "swirl-2d", "--cells", "0", "-q"])
+
+
+def test_an_internal_fault_is_one_line_with_status_3(monkeypatch, capsys):
+    import blendxr.cli as cli
+
+    def broken(args):
+        raise TypeError("a bug")
+
+    monkeypatch.setattr(cli, "_cmd_scenes", broken)
+    assert main(["scenes"]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("blendxr: internal error: TypeError: a bug") and "--debug" in err
 
 
 def test_invalid_dataset_is_reported_by_validate(tmp_path, capsys):

@@ -407,3 +407,80 @@ def test_loadings_put_equal_volumes_of_each_colour(loading):
     cell_volume = np.prod([float(flow[d][1] - flow[d][0]) for d in fill0.dims])
     material = float(fill0.where(flow["vessel"] > 0, 0.0).sum()) * cell_volume
     assert mixed["mass_a"].values[0] == pytest.approx(0.5 * material, rel=1e-9)
+
+
+# ------------------------------------------------------------ limits that limit
+
+
+def test_max_steps_stops_inside_an_interval_and_the_resume_is_bit_identical(tmp_path):
+    """The step budget is checked after every step, not only at output times; the
+    interrupted interval's plan is carried in the checkpoint."""
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=4, rpm=60.0, size=0.2)
+    kwargs = dict(initial="top-bottom", k1=0.1, d=0.004, cells=24, progress=False)
+    straight = bx.mix(flow, revolutions=0.5, output_every=0.5, **kwargs)
+    assert straight.attrs["steps"] > 7  # several steps in each stored-phase interval
+    ckpt = tmp_path / "run.ckpt.nc"
+    first = bx.mix(flow, revolutions=0.5, output_every=0.5, checkpoint=ckpt, max_steps=7, **kwargs)
+    assert first.attrs["stopped_by"] == "max_steps" and first.attrs["steps"] == 7
+    resumed = bx.mix(flow, revolutions=0.5, output_every=0.5, checkpoint=ckpt, **kwargs)
+    assert resumed.attrs["steps"] == straight.attrs["steps"]
+    np.testing.assert_array_equal(resumed["c"].values, straight["c"].values)
+
+
+def test_wall_time_stops_inside_an_interval():
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=4, rpm=60.0, size=0.2)
+    mixed = bx.mix(flow, revolutions=0.5, output_every=0.5, cells=24, wall_time=1e-9,
+                   progress=False)  # fmt: skip
+    assert mixed.attrs["stopped_by"] == "wall_time" and mixed.attrs["steps"] == 1
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        ({"cells": 100_000}, ["numerics.cells = 100000", "MiB", "numerics.cells <="]),
+        ({"output_every": 1e-12}, ["mixing.output_every", "records", "at most 1,000,000"]),
+        ({"dt": 1e-12, "revolutions": 1.0}, ["dt = 1e-12", "cell updates"]),
+        ({"cells": 64, "memory_budget_mb": 1.0}, ["above numerics.memory_budget_mb = 1"]),
+    ],
+)
+def test_a_run_that_cannot_fit_or_end_is_refused_before_it_allocates(kwargs, words):
+    flow = bx.flows.uniform(velocity=(0.01, 0.0), cells=8)
+    with pytest.raises(ValueError) as err:
+        bx.mix(flow, progress=False, **kwargs)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_the_memory_estimate_covers_what_the_run_allocates():
+    """The plan's bytes per cell bound what tracemalloc sees (both schemes, 2-D; a budget
+    that leaves the reader its window of three phases, not the whole revolution)."""
+    import tracemalloc
+
+    from blendxr.ade.stepper import _settings_from, plan
+
+    flow = bx.flows.solid_body_rotation(ndim=2, radius=0.1, cells=24, rpm=10.0,
+                                        fill_fraction=0.4, n_phases=12)  # fmt: skip
+    for scheme in bx.SCHEMES:
+        kwargs = dict(scheme=scheme, cells=160, revolutions=0.02, output_every=0.01, k1=0.01,
+                      d=0.002, memory_budget_mb=20.0, progress=False)  # fmt: skip
+        bx.mix(flow, **{**kwargs, "cells": 8})  # compiled before measuring
+        tracemalloc.start()
+        bx.mix(flow, **kwargs)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        planned = plan(flow, _settings_from(None, kwargs))["bytes"]
+        assert peak <= planned
+
+
+def test_a_velocity_no_bed_can_reach_is_refused_naming_the_cell():
+    flow = bx.flows.uniform(velocity=(0.01, 0.0), cells=8)
+    flow["vx"] = flow["vx"].copy()
+    flow["vx"][0, 3, 4] = 1e30
+    with pytest.raises(ValueError, match=r"vx = 1e\+30 m/s at rev_phase index 0, cell \(3, 4\)"):
+        bx.mix(flow, revolutions=0.1, cells=8, progress=False)
+
+
+def test_a_diffusivity_that_needs_too_many_substeps_is_refused():
+    flow = bx.flows.uniform(velocity=(0.01, 0.0), cells=8)
+    with pytest.raises(ValueError, match="sub-steps"):
+        bx.mix(flow, diffusivity=(1e3, 1e3), revolutions=0.1, cells=32, progress=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
@@ -572,6 +573,23 @@ def test_failed_write_leaves_target_untouched(tmp_path, flow_2d, mixing_2d, monk
         bio.write_dataset(flow_2d, target)
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["out.nc"]
+
+
+def test_a_full_disk_is_named_as_such(tmp_path, flow_2d, monkeypatch):
+    """The netCDF library reports a full disk as "NetCDF: HDF error"."""
+    import collections
+    import shutil
+
+    def failing(self, path=None, *args, **kwargs):
+        raise OSError("NetCDF: HDF error")
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", failing)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9, 1024))
+    with pytest.raises(OSError, match="no space left on the device") as err:
+        bio.write_dataset(flow_2d, tmp_path / "flow.nc")
+    assert err.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_interrupted_write_leaves_no_temporary(tmp_path, flow_2d, monkeypatch):

@@ -11,6 +11,7 @@ prepared revolution fits the memory budget it is kept, so later revolutions read
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -51,6 +52,21 @@ class PreparedPhase:
         return self.vel.nbytes + self.fill.nbytes + (0 if self.dif is None else self.dif.nbytes)
 
 
+#: how far above a bed's plausible speed a flow's velocity may be before it is refused
+SPEED_MARGIN = 10.0
+
+
+def plausible_speed(flow, coords) -> float:
+    """The fastest a tumbling bed in this flow's domain can move, times
+    :data:`SPEED_MARGIN`: the wall's speed omega D plus the speed of a free fall over
+    the domain, sqrt(2 g D), D the domain's diagonal (rpm and gravity from the flow's
+    attributes)."""
+    diagonal = math.sqrt(sum((c[-1] - c[0]) ** 2 for c in coords))
+    omega = 2.0 * math.pi * float(flow.attrs.get("rpm", 0.0)) / 60.0
+    gravity = float(flow.attrs.get("gravity", 9.81))
+    return SPEED_MARGIN * (omega * diagonal + math.sqrt(2.0 * gravity * diagonal))
+
+
 class CyclicPhaseReader:
     """Serve prepared flow phases cyclically, reading each from the dataset lazily.
 
@@ -86,6 +102,7 @@ class CyclicPhaseReader:
         vessel_flow = np.asarray(flow["vessel"].values) > 0
         self._vessel_flow = vessel_flow
         self.vessel = (interpolate(vessel_flow.astype(float), self._maps) >= 0.5) & self._inside
+        self.speed_limit = plausible_speed(flow, flow_coords)
         per_phase = (2 * self.ndim + 1) * np.prod(grid.shape) * 8
         self.keep_all = per_phase * self.n_phases <= memory_budget
         self._window = 3
@@ -108,7 +125,26 @@ class CyclicPhaseReader:
                 raise ValueError(
                     f"flow variable {name} is not finite at rev_phase index {k}, cell {cell}"
                 )
+            if name != "fill":
+                self._check_speed(name, values, k)
         return arrays
+
+    def _check_speed(self, name: str, values: np.ndarray, k: int) -> None:
+        """Refuse a velocity no tumbling bed can reach (a fault of the flow, which would
+        otherwise shrink the stable dt until the run never ends)."""
+        worst = np.unravel_index(np.argmax(np.abs(values)), values.shape)
+        if abs(values[worst]) <= self.speed_limit:
+            return
+        where = ", ".join(
+            f"{d}={float(self.flow[d].values[i]):.4g} m"
+            for d, i in zip(self.grid.dims, worst, strict=True)
+        )
+        raise ValueError(
+            f"flow variable {name} = {values[worst]:.4g} m/s at rev_phase index {k}, cell "
+            f"{tuple(int(i) for i in worst)} ({where}) is far above what the vessel's speed "
+            f"and gravity allow, {self.speed_limit:.3g} m/s ({SPEED_MARGIN:g} (omega D + "
+            "sqrt(2 g D)), D the flow domain's diagonal): the flow is faulty"
+        )
 
     def _prepare(self, k: int) -> PreparedPhase:
         arrays = self._read(k)

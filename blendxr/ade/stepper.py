@@ -44,14 +44,59 @@ M_MIN = 1e-9
 SUPPORT_FILL = 1e-9
 # How far outside [0, 1] a value may stray (round-off) before the run is stopped.
 BOUND_TOLERANCE = 1e-6
+#: bytes a mixing run holds per ADE cell besides its snapshots (state, double buffers,
+#: blended fields, the three prepared phases of the reader's window, metric
+#: temporaries), measured with tracemalloc on both schemes (the larger, rounded up)
+BYTES_PER_CELL = {2: 350, 3: 420}
+#: at most this many records of the mixing curves (outputs) in one run
+MAX_RECORDS = 1_000_000
+#: at most this many cell updates planned with a given dt (about a day of stepping)
+MAX_PLANNED_CELL_UPDATES = 1e13
+#: at most this many diffusion sub-steps in one advection step of the finite volumes
+MAX_DIFFUSION_SUBSTEPS = 1000
 
 
-#: mix() keywords whose range the scene schema holds (checked there when given directly).
+class _StopRun(Exception):
+    """max_steps or wall_time reached inside a stored-phase interval."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+#: mix() keywords whose defaults and ranges the scene schema holds (the one home of both:
+#: a keyword given directly is checked there, not here again)
 SCHEMA_KEYS = {
+    "scheme": "numerics.scheme",
+    "k1": "mixing.k1",
+    "k2": "mixing.k2",
+    "d": "material.particle_diameter",
+    "revolutions": "mixing.revolutions",
+    "cells": "numerics.cells",
+    "output_every": "mixing.output_every",
+    "snapshots": "mixing.snapshots",
+    "sampling_cell": "mixing.sampling_cell",
+    "packing": "material.packing_fraction",
+    "safety": "numerics.safety",
+    "memory_budget_mb": "numerics.memory_budget_mb",
     "stop_rsd": "mixing.stop_rsd",
     "stop_intensity": "mixing.stop_intensity",
     "min_intensity_cells": "mixing.min_intensity_cells",
 }
+
+
+def _schema_default(keyword: str):
+    """A dataclass default read from the scene schema when the settings are made."""
+    return field(default_factory=lambda: default_of(SCHEMA_KEYS[keyword]))
+
+
+def _as_json(value):
+    """Tuples as lists, numpy scalars as Python numbers: what the schema validator reads."""
+    if isinstance(value, tuple | list | np.ndarray):
+        return [_as_json(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 class BlowUpError(FloatingPointError):
@@ -62,21 +107,21 @@ class BlowUpError(FloatingPointError):
 class MixSettings:
     """Resolved settings of one ADE run (scene values overridden by keyword arguments)."""
 
-    scheme: str = "finite-volume"
-    initial: object = "top-bottom"
-    k1: float = 0.01
+    scheme: str = _schema_default("scheme")
+    initial: object = field(default_factory=lambda: default_of("mixing.loading"))
+    k1: float = _schema_default("k1")
     k2: float | None = None
-    d: float = 0.012
+    d: float = _schema_default("d")
     diffusivity: tuple | None = None
-    revolutions: float = 10.0
-    cells: object = 100
-    output_every: float = 0.25
+    revolutions: float = _schema_default("revolutions")
+    cells: object = _schema_default("cells")
+    output_every: float = _schema_default("output_every")
     snapshots: tuple | None = None
     sampling_cell: float | None = None
-    packing: float = 0.6
-    safety: float = 0.9
+    packing: float = _schema_default("packing")
+    safety: float = _schema_default("safety")
     dt: float | None = None
-    memory_budget_mb: float = 1024.0
+    memory_budget_mb: float = _schema_default("memory_budget_mb")
     progress: bool | None = None
     checkpoint: str | None = None
     checkpoint_every: float = 1.0
@@ -87,34 +132,30 @@ class MixSettings:
     refresh_per_phase: int | None = 2
     stop_rsd: float | str | None = None
     stop_intensity: float | str | None = None
-    min_intensity_cells: int = field(
-        default_factory=lambda: default_of("mixing.min_intensity_cells")
-    )
+    min_intensity_cells: int = _schema_default("min_intensity_cells")
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        check_values({key: _as_json(getattr(self, name)) for name, key in SCHEMA_KEYS.items()})
         faults = []
-        if self.scheme not in SCHEMES:
-            faults.append(f"scheme {self.scheme!r} is unknown; allowed: {', '.join(SCHEMES)}")
-        for name in ("k1", "d", "revolutions", "output_every", "safety"):
+        for name in ("checkpoint_every", "wall_time"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value)):
-                faults.append(f"{name} must be a finite number, got {value!r}")
-            elif value < 0 or (value == 0 and name != "k1"):
-                allowed = ">= 0" if name == "k1" else "> 0"
-                faults.append(f"{name} = {value!r} is out of range; allowed: {allowed}")
-        if self.k2 is not None and not (self.k2 >= 0):
-            faults.append(f"k2 = {self.k2!r} is out of range; allowed: >= 0")
-        if self.safety > 1:
-            faults.append(f"safety = {self.safety!r} is out of range; allowed: (0, 1]")
+            if value is not None and not (isinstance(value, int | float) and value > 0):
+                faults.append(f"{name} = {value!r} is out of range; allowed: a number > 0")
+        for name in ("max_steps", "check_every"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int) and value >= 1):
+                faults.append(f"{name} = {value!r} is out of range; allowed: an integer >= 1")
         if self.refresh_per_phase is not None and not (
             isinstance(self.refresh_per_phase, int) and self.refresh_per_phase >= 1
         ):
             faults.append(
                 f"refresh_per_phase = {self.refresh_per_phase!r}: needs an integer >= 1 or None"
             )
-        if self.dt is not None and not (self.dt > 0):
-            faults.append(f"dt = {self.dt!r} is out of range; allowed: > 0")
+        if self.dt is not None and not (
+            isinstance(self.dt, int | float) and 0 < self.dt < math.inf
+        ):
+            faults.append(f"dt = {self.dt!r} is out of range; allowed: a finite number > 0")
         if isinstance(self.initial, str) and self.initial not in LOADINGS:
             faults.append(
                 f"initial loading {self.initial!r} is unknown; allowed: {', '.join(LOADINGS)}"
@@ -179,8 +220,6 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise TypeError(f"mix() got unknown keyword(s) {unknown}; known: {sorted(known)}")
-    # keywords with a home in the scene schema are checked there, not here again
-    check_values({SCHEMA_KEYS[k]: v for k, v in overrides.items() if k in SCHEMA_KEYS})
     values.update(overrides)
     if "revolutions" in overrides and "snapshots" not in overrides and values.get("snapshots"):
         values["snapshots"] = tuple(fit_snapshots(values["snapshots"], overrides["revolutions"]))
@@ -323,6 +362,87 @@ def _event_times(settings: MixSettings, period: float):
     return outputs, snaps
 
 
+def _available_memory() -> float:
+    """Bytes this machine has available now (MemAvailable), or inf where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return math.inf
+
+
+def plan(flow, settings: MixSettings) -> dict:
+    """What a run will hold and do, estimated before anything is allocated; refused with
+    the number and what to change when it cannot fit or would not end.
+
+    Returns the grid, its cell count, the records, the bytes the run needs and the
+    bytes left for the reader's cache of prepared phases.
+
+    Raises
+    ------
+    ValueError
+        More records than :data:`MAX_RECORDS`, more memory than
+        ``numerics.memory_budget_mb`` or this machine has available, or (with a given
+        ``dt``) more cell updates than :data:`MAX_PLANNED_CELL_UPDATES`.
+    """
+    s = settings
+    ndim = 3 if "z" in flow.dims else 2
+    records = math.floor(s.revolutions / s.output_every + 1e-9) + 2
+    if records > MAX_RECORDS:
+        raise ValueError(
+            f"mixing.output_every = {s.output_every:g} gives {records:.3g} records over "
+            f"{s.revolutions:g} revolutions; at most {MAX_RECORDS:,}: choose "
+            f"mixing.output_every >= {s.revolutions / (MAX_RECORDS - 2):.3g}"
+        )
+    coords = [np.asarray(flow[d].values, float) for d in ("x", "y", "z")[:ndim]]
+    for name, c in zip(("x", "y", "z"), coords, strict=False):
+        if len(c) < 2:
+            raise ValueError(f"flow coordinate {name} needs at least 2 cells")
+    lows = [c[0] - 0.5 * (c[1] - c[0]) for c in coords]
+    highs = [c[-1] + 0.5 * (c[1] - c[0]) for c in coords]
+    grid = AdeGrid.covering(lows, highs, s.cells)
+    n_cells = math.prod(grid.shape)
+    snapshots = len(s.snapshots) + 1 if s.snapshots is not None else 12
+    need = n_cells * (BYTES_PER_CELL[ndim] + 8 * snapshots)
+    budget = s.memory_budget_mb * 2**20
+    limit, what = min((budget, "numerics.memory_budget_mb"), (_available_memory(), "available"))
+    if need > limit:
+        scale = (limit / need) ** (1.0 / ndim)
+        cells = s.cells if np.ndim(s.cells) == 0 else max(s.cells)
+        where = (
+            f"above numerics.memory_budget_mb = {s.memory_budget_mb:g}"
+            if what == "numerics.memory_budget_mb"
+            else f"more than the {limit / 2**20:.0f} MiB this machine has available"
+        )
+        raise ValueError(
+            f"numerics.cells = {s.cells} gives {n_cells:.3g} ADE cells "
+            f"({' x '.join(map(str, grid.shape))}), which need about {need / 2**20:.4g} MiB, "
+            f"{where}: choose about numerics.cells <= {max(int(cells * scale), 1)} or raise "
+            "numerics.memory_budget_mb"
+        )
+    if s.dt is not None:
+        rpm = float(flow.attrs.get("rpm", 0.0))
+        period = 60.0 / rpm if rpm > 0 else math.inf
+        updates = s.revolutions * period / s.dt * n_cells
+        if updates > MAX_PLANNED_CELL_UPDATES:
+            raise ValueError(
+                f"dt = {s.dt:g} s asks for {s.revolutions * period / s.dt:.3g} steps of "
+                f"{n_cells:.3g} cells ({updates:.3g} cell updates, at most "
+                f"{MAX_PLANNED_CELL_UPDATES:.0e}): give a larger dt, or none (the scheme's "
+                "own stable dt)"
+            )
+    return {
+        "grid": grid,
+        "cells": n_cells,
+        "records": records,
+        "bytes": need,
+        "cache_bytes": max(budget - need, 0.0),
+    }
+
+
 def _resolve_flow(flow, scene):
     from ..io import open_flow
 
@@ -348,7 +468,7 @@ def _resolve_flow(flow, scene):
 class _Run:
     """One ADE run: grid, reader, state, clocks, recorded outputs."""
 
-    def __init__(self, flow, scene, settings: MixSettings):
+    def __init__(self, flow, scene, settings: MixSettings, planned: dict | None = None):
         self.flow = flow
         self.scene = scene
         self.settings = s = settings
@@ -357,13 +477,8 @@ class _Run:
         if rpm <= 0:
             raise ValueError("the flow's rpm must be > 0 to define a revolution for mixing")
         self.period = 60.0 / rpm
-        coords = [np.asarray(flow[d].values, float) for d in ("x", "y", "z")[: self.ndim]]
-        for name, c in zip(("x", "y", "z"), coords, strict=False):
-            if len(c) < 2:
-                raise ValueError(f"flow coordinate {name} needs at least 2 cells")
-        lows = [c[0] - 0.5 * (c[1] - c[0]) for c in coords]
-        highs = [c[-1] + 0.5 * (c[1] - c[0]) for c in coords]
-        self.grid = AdeGrid.covering(lows, highs, s.cells)
+        planned = plan(flow, s) if planned is None else planned
+        self.grid = planned["grid"]
         self.with_diffusion = s.diffusivity is not None or s.k1 > 0 or s.k2 > 0
         if s.diffusivity is not None:
             diffusion = tuple(np.broadcast_to(np.asarray(s.diffusivity, float), (self.ndim,)))
@@ -377,7 +492,7 @@ class _Run:
         else:
             diffusion = None
         self.reader = CyclicPhaseReader(
-            flow, self.grid, diffusion, memory_budget=s.memory_budget_mb * 2**20
+            flow, self.grid, diffusion, memory_budget=planned["cache_bytes"]
         )
         self.vessel = self.reader.vessel.astype(np.uint8)
         self.support = self.vessel.copy()
@@ -409,6 +524,9 @@ class _Run:
             "fill_mismatch": [],
         }
         self.snapshots: dict[float, np.ndarray] = {}
+        # a stored-phase interval a stop left unfinished: (start, end, steps done)
+        self.interval: tuple[float, float, int] | None = None
+        self.deadline = math.inf  # perf_counter time of wall_time
         self.sampling_cell = self._sampling_cell()
         self.mean_c = None  # the mean of c, from the first record (it is conserved)
 
@@ -559,12 +677,22 @@ class _Run:
         return self._zeros_stack
 
     def advance_to(self, t_end: float) -> None:
-        """Step from self.t to t_end (no stored-phase boundary inside)."""
-        span = t_end - self.t
+        """Step from self.t to t_end (no stored-phase boundary inside).
+
+        The interval's steps are planned from where it started: a run stopped inside it
+        (max_steps, wall_time) and resumed from its checkpoint finishes the same plan,
+        step for step, so that the resumed answer is bit-identical.
+        """
+        t0, done = self.t, 0
+        if self.interval is not None:
+            start, end, steps = self.interval
+            if abs(end - t_end) <= 1e-12 * self.period:
+                t0, done = start, steps
+        span = t_end - t0
         if span <= 1e-15 * self.period:
             self.t = t_end
             return
-        mid = self._phase_position(self.t + 0.5 * span)
+        mid = self._phase_position(t0 + 0.5 * span)
         k = math.floor(mid)
         a, b = self.reader.pair(k)
         # The stored revolution repeats, so an interval's limit is computed once per run.
@@ -586,11 +714,7 @@ class _Run:
         dt = span / n
         self.dt_used[0] = min(self.dt_used[0], dt)
         self.dt_used[1] = max(self.dt_used[1], dt)
-        n_sub = 0
-        if s.scheme == "finite-volume" and self.with_diffusion:
-            dmax = tuple(np.maximum(a.dif, b.dif))
-            n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
-            self.max_substeps = max(self.max_substeps, n_sub)
+        n_sub = self._substeps(a, b, dt)
         # Flow fields (and the scheme's per-cell coefficients) are refreshed in blocks of
         # steps, each at its block's midpoint time: piecewise-constant coefficients in time,
         # second-order in the block length (docs/numerics.md).
@@ -598,19 +722,51 @@ class _Run:
         blocks = (
             1 if steady else (n if s.refresh_per_phase is None else min(n, s.refresh_per_phase))
         )
-        t0 = self.t
         for block in range(blocks):
             first, last = (block * n) // blocks, ((block + 1) * n) // blocks
+            if last <= done:
+                continue  # stepped before the stop this run resumes from
             t_mid = t0 + 0.5 * (first + last) * dt
             w = 0.0 if steady else min(max(self._phase_position(t_mid) - k, 0.0), 1.0)
             self._refresh(a, b, w, dt, limit)
-            for _ in range(last - first):
+            for i in range(max(first, done), last):
                 self._step(dt, n_sub)
                 self.t += dt
                 self.steps += 1
                 if self.steps % s.check_every == 0:
                     self.check()
+                reason = self._stop_now()
+                if reason is not None and i + 1 < n:
+                    self.interval = (t0, t_end, i + 1)
+                    raise _StopRun(reason)
+        self.interval = None
         self.t = t_end
+
+    def _substeps(self, a, b, dt: float) -> int:
+        """Diffusion sub-steps of one finite-volume step (0: none), refused above
+        :data:`MAX_DIFFUSION_SUBSTEPS`."""
+        if not (self.settings.scheme == "finite-volume" and self.with_diffusion):
+            return 0
+        dmax = tuple(np.maximum(a.dif, b.dif))
+        n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
+        if n_sub > MAX_DIFFUSION_SUBSTEPS:
+            raise ValueError(
+                f"the diffusivity needs {n_sub} sub-steps in one advection step of "
+                f"{dt:.3g} s (explicit diffusion is stable for D dt / h^2 <= 1/2 along each "
+                f"axis); at most {MAX_DIFFUSION_SUBSTEPS}: lower mixing.k1 and mixing.k2, or "
+                "use fewer numerics.cells"
+            )
+        self.max_substeps = max(self.max_substeps, n_sub)
+        return n_sub
+
+    def _stop_now(self) -> str | None:
+        """ "max_steps" or "wall_time" once either is reached, else None."""
+        limit = self.settings.max_steps
+        if limit is not None and self.steps >= limit:
+            return "max_steps"
+        if wallclock.perf_counter() >= self.deadline:
+            return "wall_time"
+        return None
 
     def _refresh(self, a, b, w: float, dt: float, limit: float) -> None:
         """Blend the flow fields at weight w and prepare the scheme's per-cell data."""
@@ -720,6 +876,7 @@ class _Run:
             "dt_min": self.dt_used[0],
             "dt_max": self.dt_used[1],
             "max_substeps": self.max_substeps,
+            "interval": json.dumps(self.interval),
             "blendxr_version": __version__,
         }
         write_checkpoint(path, arrays, meta)
@@ -745,6 +902,10 @@ class _Run:
         self.cell_updates = int(meta["cell_updates"])
         self.dt_used = [float(meta["dt_min"]), float(meta["dt_max"])]
         self.max_substeps = int(meta["max_substeps"])
+        interval = json.loads(meta.get("interval", "null"))
+        self.interval = (
+            None if interval is None else (float(interval[0]), float(interval[1]), int(interval[2]))
+        )
         return True
 
 
@@ -807,7 +968,9 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
     flow, scene = _resolve_flow(flow, scene)
     settings = _settings_from(scene, overrides)
     started = wallclock.perf_counter()
-    run = _Run(flow, scene, settings)
+    run = _Run(flow, scene, settings, plan(flow, settings))
+    if settings.wall_time is not None:
+        run.deadline = started + settings.wall_time
     outputs, snaps = _event_times(settings, run.period)
     run._snapshot_revs = [float(r) for r in snaps]
     events = np.union1d(outputs, snaps)
@@ -832,7 +995,7 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
             while run.t < t_event - 1e-12 * run.period:
                 pos = run._phase_position(run.t)
                 boundary = (math.floor(pos + 1e-9) + 1) / run.reader.n_phases * run.period
-                run.advance_to(min(boundary, t_event))
+                run.advance_to(min(boundary, t_event))  # raises _StopRun
             run.check()
             done = rev
             if rev in outputs or rev in snaps:
@@ -854,6 +1017,8 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
             if settings.max_steps is not None and run.steps >= settings.max_steps:
                 stopped_by = "max_steps"
                 break
+    except _StopRun as stop:
+        stopped_by = stop.reason
     finally:
         bar.close()
         run.reader.close()
