@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+import xarray as xr
 
 import blendxr as bx
 
@@ -484,3 +485,28 @@ def test_a_diffusivity_that_needs_too_many_substeps_is_refused():
     flow = bx.flows.uniform(velocity=(0.01, 0.0), cells=8)
     with pytest.raises(ValueError, match="sub-steps"):
         bx.mix(flow, diffusivity=(1e3, 1e3), revolutions=0.1, cells=32, progress=False)
+
+
+def _c0_on(flow, value=0.5):
+    return xr.full_like(flow["fill"].isel(rev_phase=0, drop=True), value, dtype=float)
+
+
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda c: c * np.nan, ["not finite at 64 of 64 points"]),
+        (lambda c: c.where(c.x < 0.05), ["not finite at", "first at x="]),
+        (lambda c: c.drop_vars(["x", "y"]), ["no coordinates", "by index"]),
+        (lambda c: c.assign_coords(x=c.x / 100), ["covers x"]),
+        (lambda c: c.assign_coords(x=c.x.assign_attrs(units="cm")), ["in 'cm'"]),
+    ],
+)
+def test_an_initial_dataarray_that_would_be_guessed_at_is_refused(make, words):
+    """NaN was taken as c = 0.5 (RSD 0, "perfectly mixed"); no coordinates placed the
+    values by index; an array beside the bed was filled from its nearest edge."""
+    flow = bx.flows.uniform(velocity=(0.01, 0.0), cells=8)
+    c0 = make(_c0_on(flow))
+    with pytest.raises(ValueError) as err:
+        bx.mix(flow, initial=c0, revolutions=0.1, cells=8, progress=False)
+    for word in words:
+        assert word in str(err.value)

@@ -296,6 +296,62 @@ class _Fields:
 # ----------------------------------------------------------------------------- set-up
 
 
+def _initial_from_dataarray(c0: xr.DataArray, grid: AdeGrid, fill0: np.ndarray) -> np.ndarray:
+    """c at t = 0 from a DataArray over (x, y[, z]) in metres, interpolated onto the grid.
+
+    Refused: a missing dimension or coordinate, NaN or infinite values, values outside
+    [0, 1], and an array that does not reach over the bed (nearest values would fill it
+    silently).
+    """
+    missing = [d for d in grid.dims if d not in c0.dims]
+    if missing:
+        raise ValueError(f"initial: the DataArray lacks dims {missing}")
+    no_coords = [d for d in grid.dims if d not in c0.coords]
+    if no_coords:
+        raise ValueError(
+            f"initial: the DataArray has no coordinates on {no_coords}: give them in metres "
+            "(its values would otherwise be placed by index)"
+        )
+    for d in grid.dims:
+        units = c0[d].attrs.get("units", "m")
+        if units != "m":
+            raise ValueError(f"initial: coordinate {d} in {units!r}; give it in metres ('m')")
+    values = np.asarray(c0.values, float)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = np.argwhere(bad)[0]
+        where = ", ".join(
+            f"{d}={float(c0[d].values[i]):.4g} m" for d, i in zip(c0.dims, first, strict=True)
+        )
+        raise ValueError(
+            f"initial: c is not finite at {int(bad.sum())} of {values.size} points (first at "
+            f"{where}); give c in [0, 1] everywhere"
+        )
+    if values.min() < -BOUND_TOLERANCE or values.max() > 1 + BOUND_TOLERANCE:
+        raise ValueError("initial: c must lie in [0, 1]")
+    bed = fill0 > 0
+    for axis, d in enumerate(grid.dims):
+        coord = np.asarray(c0[d].values, float)
+        step = float(np.max(np.abs(np.diff(coord)))) if len(coord) > 1 else 0.0
+        others = tuple(a for a in range(grid.ndim) if a != axis)
+        reach = grid.coords[axis][np.any(bed, axis=others)] if bed.any() else []
+        if len(reach) and (
+            reach.min() < coord.min() - step - grid.spacing[axis]
+            or reach.max() > coord.max() + step + grid.spacing[axis]
+        ):
+            raise ValueError(
+                f"initial: the DataArray covers {d} from {coord.min():.4g} to "
+                f"{coord.max():.4g} m, the bed reaches {reach.min():.4g} to {reach.max():.4g} m"
+            )
+    target = {d: xr.DataArray(c, dims=d) for d, c in zip(grid.dims, grid.coords, strict=True)}
+    linear = c0.interp(target, method="linear")
+    # within a cell or so of the array's edge (checked above) the nearest value holds
+    nearest = c0.interp(target, method="nearest", kwargs={"fill_value": "extrapolate"})
+    out = linear.fillna(nearest).transpose(*grid.dims).values
+    # cells without material carry no c (the value is never read)
+    return np.clip(np.where(np.isfinite(out), out, 0.0), 0.0, 1.0)
+
+
 def _initial_concentration(settings: MixSettings, grid: AdeGrid, fill0: np.ndarray) -> np.ndarray:
     """c at t = 0 from a loading name or a user DataArray (DESIGN §2 loadings)."""
     if callable(settings.initial) and not isinstance(settings.initial, xr.DataArray):
@@ -310,17 +366,7 @@ def _initial_concentration(settings: MixSettings, grid: AdeGrid, fill0: np.ndarr
         c0 = settings.initial
         if not isinstance(c0, xr.DataArray):
             raise TypeError("initial must be a loading name, a DataArray of c or a callable")
-        missing = [d for d in grid.dims if d not in c0.dims]
-        if missing:
-            raise ValueError(f"initial: the DataArray lacks dims {missing}")
-        target = {d: xr.DataArray(c, dims=d) for d, c in zip(grid.dims, grid.coords, strict=True)}
-        linear = c0.interp(target, method="linear")
-        nearest = c0.interp(target, method="nearest", kwargs={"fill_value": None})
-        values = linear.fillna(nearest).transpose(*grid.dims).values
-        values = np.nan_to_num(values, nan=0.5)
-        if np.nanmin(values) < -BOUND_TOLERANCE or np.nanmax(values) > 1 + BOUND_TOLERANCE:
-            raise ValueError("initial: c must lie in [0, 1]")
-        return np.clip(values, 0.0, 1.0)
+        return _initial_from_dataarray(c0, grid, fill0)
     loading = _ALIASES.get(settings.initial, settings.initial)
     if loading == "axial" and grid.ndim == 2:
         raise ValueError("initial 'axial' splits along z: a 2-D scene has no z; use 'transverse'")
