@@ -17,6 +17,7 @@ import json
 import os
 import shutil
 import tempfile
+import uuid
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -109,6 +110,58 @@ def _atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
         raise
     _fsync_path(parent, directory=True)
+
+
+#: temporary files of a write killed midway are removed once they are this old (s): a
+#: younger one may belong to a write still running in the same folder
+STALE_TEMPORARY_S = 600.0
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files that killed writes left in ``folder`` (the hidden
+    ``.NAME.*.tmp`` and ``.NAME.*.staged.*`` files of :func:`_atomic_path` and
+    :func:`staged_outputs`) when older than :data:`STALE_TEMPORARY_S`. Returns them."""
+    import time
+
+    removed = []
+    now = time.time()
+    for pattern in (".*.tmp", ".*.staged.*"):
+        for path in Path(folder).glob(pattern):
+            with contextlib.suppress(FileNotFoundError):
+                if path.is_file() and now - path.stat().st_mtime > STALE_TEMPORARY_S:
+                    path.unlink()
+                    removed.append(path)
+    return removed
+
+
+@contextlib.contextmanager
+def staged_outputs(folder: str | os.PathLike) -> Iterator:
+    """Write a run's outputs so that they are all new or all old.
+
+    Yields ``stage(name) -> Path``: a hidden path in ``folder`` to write ``name`` to
+    (with the atomic writers). When the block ends without error every staged file is
+    renamed onto its name, one rename each after all are written; on an error the
+    staged files are removed and the folder keeps its previous outputs.
+    """
+    folder = Path(folder)
+    token = uuid.uuid4().hex[:12]  # unique per batch
+    staged: dict[str, Path] = {}
+
+    def stage(name: str) -> Path:
+        # the name's own suffix last: writers that choose a format by it still can
+        staged[name] = folder / f".{name}.{token}.staged{Path(name).suffix}"
+        return staged[name]
+
+    try:
+        yield stage
+        for name, path in staged.items():
+            os.replace(path, folder / name)
+    except BaseException:
+        for path in staged.values():
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        raise
+    _fsync_path(folder, directory=True)
 
 
 # --------------------------------------------------------------------------------------

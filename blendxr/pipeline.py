@@ -514,10 +514,13 @@ def report_lines(report: Mapping) -> list[str]:
 
 def check_output_folder(output: str | os.PathLike) -> Path:
     """The output folder, created; refused before any work if it is a file."""
+    from .io import remove_stale_temporaries
+
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"output folder {out} is an existing file; give a folder")
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
     return out
 
 
@@ -559,7 +562,7 @@ def run_scene(
         The report (as written to ``report.json``).
     """
     from . import mix
-    from .io import write_dataset, write_json
+    from .io import staged_outputs, write_dataset, write_json
     from .plot import save_mixing_figure, save_snapshot_figure
 
     scene = load_scene(scene)
@@ -571,15 +574,24 @@ def run_scene(
         )
     with stages.measure("mixing"):
         mixed = mix(flow, scene, progress=progress, checkpoint=checkpoint, **mix_overrides)
-    with stages.measure("report"):
-        write_dataset(mixed, out / "mixing.nc")
-        if save_flow:
-            stored = flow.copy()
-            stored.attrs["scene"] = scene.to_toml()  # same flow inputs by the cache key
-            write_dataset(stored, out / "flow.nc")
-        save_mixing_figure(mixed, out / "mixing.png")
-        save_snapshot_figure(mixed, out / "snapshots.png")
-    report = {
+    # every output staged, then renamed together: a folder holds one run's outputs
+    with staged_outputs(out) as stage:
+        with stages.measure("report"):
+            write_dataset(mixed, stage("mixing.nc"))
+            if save_flow:
+                stored = flow.copy()
+                stored.attrs["scene"] = scene.to_toml()  # same flow inputs by the cache key
+                write_dataset(stored, stage("flow.nc"))
+            save_mixing_figure(mixed, stage("mixing.png"))
+            save_snapshot_figure(mixed, stage("snapshots.png"))
+        report = _report(scene, source, flow, mixed, stages, save_flow)
+        write_json(report, stage("report.json"))
+    return report
+
+
+def _report(scene, source, flow, mixed, stages, save_flow: bool) -> dict:
+    """The run's report (``report.json``)."""
+    return {
         "scene": scene.name,
         "blendxr_version": __version__,
         "flow_source": source.describe(),
@@ -590,5 +602,3 @@ def run_scene(
         "files": ["mixing.nc", "mixing.png", "snapshots.png", "report.json"]
         + (["flow.nc"] if save_flow else []),
     }
-    write_json(report, out / "report.json")
-    return report

@@ -371,3 +371,38 @@ def test_calibrate_on_the_shell_prints_the_best_k1_and_writes_the_cost_plot(tmp_
     with xr.open_dataset(tmp_path / "calibration.nc") as ds:
         assert list(ds["k1"].values) == [0.2, 0.4, 0.6, 0.8]
         assert ds.attrs["best_k1"] == pytest.approx(best, rel=1e-3)
+
+
+def test_a_failed_run_leaves_the_previous_outputs_whole(tmp_path, monkeypatch):
+    """Outputs are staged and renamed together: a failure while writing them (here the
+    snapshot picture) keeps every file of the previous run and leaves no staged file."""
+    from blendxr import plot
+
+    values = {"flow.parameters.cells": 24, "numerics.cells": 24, "mixing.revolutions": 0.5}
+    scene = bx.load_scene("swirl-2d", values)
+    bx.run_scene(scene, tmp_path, progress=False)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(plot, "save_snapshot_figure", broken)
+    with pytest.raises(OSError, match="disk full"):
+        bx.run_scene(scene.with_values({"mixing.k1": 0.1}), tmp_path, progress=False)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_stale_temporaries_of_a_killed_write_are_removed_at_the_next_run(tmp_path):
+    import os
+    import time
+
+    from blendxr.io import STALE_TEMPORARY_S
+
+    old = tmp_path / ".mixing.nc.abc123.tmp"
+    young = tmp_path / ".report.json.def456.staged.json"
+    for path in (old, young):
+        path.write_text("half")
+    stamp = time.time() - 2 * STALE_TEMPORARY_S
+    os.utime(old, (stamp, stamp))
+    pipeline.check_output_folder(tmp_path)
+    assert not old.exists() and young.exists()  # a young one may be a write under way
