@@ -26,7 +26,7 @@ import numpy as np
 import xarray as xr
 
 from ._version import __version__
-from .schema import SchemaError, _append_history, validate
+from .schema import SchemaError, _append_history, conform_flow, validate
 
 __all__ = [
     "open_flow",
@@ -325,6 +325,8 @@ def _open(path, schema: str, chunks) -> xr.Dataset:
             schema=schema,
             source=str(path),
         ) from exc
+    if schema == "flow/1":
+        ds = conform_flow(ds, origin=path.name)  # other codes' flows: form filled in
     try:
         validate(ds, schema=schema)
     except SchemaError as exc:

@@ -503,6 +503,94 @@ def validate(ds: xr.Dataset, *, schema: str | None = None) -> xr.Dataset:
     return ds
 
 
+#: global attributes a flow from another code may lack: blendxr fills them in when it
+#: reads one (they record provenance, not physics)
+_PROVENANCE_ATTRS = ("Conventions", "title", "source", "history", "scene")
+
+
+def conform_flow(ds: xr.Dataset, *, origin: str | None = None) -> xr.Dataset:
+    """A flow from another code made to follow ``flow/1`` where only form is missing.
+
+    Strict on what blendxr writes, lenient on what it reads: a flow whose physics is
+    complete (the velocities, fill and vessel with their units, ``rev_phase``, the
+    coordinates in metres, and the ``frame``, ``rpm`` and ``gravity`` attributes) is
+    accepted with what it lacked filled in -- the ``blendxr_schema`` attribute, the CF
+    attributes ``Conventions``, ``title``, ``source``, ``history`` and ``scene``, a
+    ``_FillValue`` on the coordinates (xarray's default), the ``long_name`` and ``axis``
+    attributes, a float 0/1 vessel mask, the dimension order -- and each of them named
+    in a line of the result's ``history`` (and in the ``conformed`` attribute). Missing
+    or wrong physics is left for :func:`validate` to refuse. A dataset that needs
+    nothing is returned unchanged.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+    origin : str, optional
+        Where it came from (a file), for the history line.
+    """
+    if ds.attrs.get("blendxr_schema") not in (None, "flow/1"):
+        return ds  # another kind: validate says so
+    spec = _schema("flow")
+    notes: list[str] = []
+    out = ds.copy()
+    out.attrs = dict(ds.attrs)
+    if "blendxr_schema" not in out.attrs:
+        out.attrs["blendxr_schema"] = "flow/1"
+        notes.append("the blendxr_schema attribute")
+    for key in _PROVENANCE_ATTRS:
+        if not isinstance(out.attrs.get(key), str) or (key == "title" and not out.attrs[key]):
+            notes.append(f"the {key} attribute")
+            out.attrs.pop(key, None)
+    source = out.attrs.get("source")
+    if source is not None and not source.startswith("blendxr "):
+        out.attrs["source"] = f"blendxr {__version__} (read from: {source})"
+        notes.append(f"a blendxr source (it had {source!r})")
+    out.attrs.setdefault("source", f"blendxr {__version__} (read from another code)")
+    out.attrs.setdefault("Conventions", spec["x-blendxr-global-attrs"]["Conventions"])
+    out.attrs.setdefault("title", f"flow read from {origin or 'another code'}")
+    out.attrs.setdefault("scene", "")
+    specs = _variable_specs(spec)
+    filled = set()
+    for name in out.coords:
+        var = out[name]
+        if "_FillValue" in var.attrs or var.encoding.get("_FillValue") is not None:
+            var.attrs.pop("_FillValue", None)
+            var.encoding["_FillValue"] = None
+            filled.add("coordinates free of _FillValue")
+    for name, vspec in specs.items():
+        if name not in out.variables:
+            continue
+        attrs = out[name].attrs
+        if "long_name" not in attrs and "x-blendxr-long_name" in vspec:
+            attrs["long_name"] = vspec["x-blendxr-long_name"]
+            filled.add("long_name attributes")
+        axis = vspec.get("x-blendxr-attrs", {}).get("axis")
+        if axis is not None and "axis" not in attrs:
+            attrs["axis"] = axis
+            filled.add("axis attributes")
+    notes.extend(sorted(filled))
+    if "vessel" in out and out["vessel"].dtype.kind == "f":
+        values = np.asarray(out["vessel"].values)
+        if np.all(np.isin(values, (0.0, 1.0))):
+            out["vessel"] = out["vessel"].astype(np.int8)
+            notes.append("an integer vessel mask")
+    order = [d for d in ("rev_phase", "x", "y", "z") if d in out.dims]
+    for name in list(out.data_vars):
+        dims = out[name].dims
+        wanted = tuple(d for d in order if d in dims)
+        if set(dims) == set(wanted) and dims != wanted:
+            out[name] = out[name].transpose(*wanted)
+            notes.append(f"{name} in the dimension order {wanted}")
+    if not notes:
+        return ds
+    text = "; ".join(notes)
+    out.attrs["conformed"] = text
+    out.attrs["history"] = _append_history(
+        out.attrs.get("history"), f"read a flow from {origin or 'another code'} that lacked: {text}"
+    )
+    return out
+
+
 # --------------------------------------------------------------------------------------
 # Builders
 # --------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
+import blendxr as bx
 from blendxr import io as bio
 from blendxr.flow import analytic
 from blendxr.schema import (
@@ -741,3 +742,73 @@ def test_analytic_recipe_is_json(flow_3d):
     assert recipe["flow"] == "solid_body_rotation"
     rebuilt = getattr(analytic, recipe.pop("flow"))(**recipe)
     xr.testing.assert_identical(rebuilt.drop_attrs(), flow_3d.drop_attrs())
+
+
+# ---------------------------------------------------------------------------------------
+# Flows from other codes: strict on writing, lenient on reading
+# ---------------------------------------------------------------------------------------
+
+
+def _third_party_flow(n=20, phases=12):
+    """The minimum of docs/architecture.md ("Flows from other codes")."""
+    x = y = np.linspace(0.005, 0.195, n)
+    v = np.zeros((phases, n, n))
+    return xr.Dataset(
+        {
+            "vx": (("rev_phase", "x", "y"), v + 0.01, {"units": "m s-1"}),
+            "vy": (("rev_phase", "x", "y"), v, {"units": "m s-1"}),
+            "fill": (("rev_phase", "x", "y"), v + 1.0, {"units": "1"}),
+            "vessel": (("x", "y"), np.ones((n, n)), {"units": "1"}),
+        },
+        coords={
+            "rev_phase": ("rev_phase", np.arange(phases) / phases, {"units": "1"}),
+            "x": ("x", x, {"units": "m"}),
+            "y": ("y", y, {"units": "m"}),
+        },
+        attrs={"frame": "vessel", "rpm": 10.0, "gravity": 9.81},
+    )
+
+
+def test_a_flow_with_complete_physics_from_another_code_mixes(tmp_path):
+    path = tmp_path / "flow.nc"
+    _third_party_flow().to_netcdf(path)  # xarray's defaults: _FillValue on coordinates
+    flow = bx.open_flow(path)
+    for lacked in ("blendxr_schema", "source", "history", "scene", "_FillValue", "vessel"):
+        assert lacked in flow.attrs["conformed"]
+    mixed = bx.mix(path, revolutions=0.25, cells=20, progress=False)
+    assert "it lacked" in mixed.attrs["history"] and mixed.attrs["flow_conformed"]
+    assert np.isfinite(mixed["rsd"].values).all()
+
+
+def test_a_blendxr_flow_written_by_plain_xarray_is_read_as_written(tmp_path, make_flow):
+    flow = make_flow("swirl-2d")
+    flow.attrs["source"] = "othercode 2.1"
+    del flow.attrs["history"]
+    path = tmp_path / "plain.nc"
+    flow.to_netcdf(path)
+    read = bx.open_flow(path, chunks=None)
+    assert "othercode 2.1" in read.attrs["source"] and read.attrs["source"].startswith("blendxr ")
+    np.testing.assert_array_equal(read["vx"].values, flow["vx"].values)
+
+
+@pytest.mark.parametrize(
+    "spoil, word",
+    [
+        (lambda ds: ds.drop_vars("fill"), "fill"),
+        (lambda ds: ds["vx"].attrs.pop("units") and ds, "vx"),
+        (lambda ds: ds.attrs.pop("rpm") and ds, "rpm"),
+        (lambda ds: ds.attrs.pop("frame") and ds, "frame"),
+        (lambda ds: ds.assign_coords(x=ds.x.assign_attrs(units="mm")), "x"),
+    ],
+)
+def test_a_flow_lacking_physics_is_refused_by_name(tmp_path, spoil, word):
+    path = tmp_path / "flow.nc"
+    spoil(_third_party_flow()).to_netcdf(path)
+    with pytest.raises(SchemaError, match=word):
+        bx.open_flow(path)
+
+
+def test_a_complete_blendxr_flow_is_not_touched(flow_2d):
+    from blendxr.schema import conform_flow
+
+    assert conform_flow(flow_2d) is flow_2d

@@ -23,7 +23,7 @@ import xarray as xr
 from .. import metrics
 from .._version import __version__
 from ..scene import Scene, check_values, default_of, fit_snapshots, load_scene
-from ..schema import mixing_dataset, validate
+from ..schema import conform_flow, mixing_dataset, validate
 from . import kernels, stability
 from .diffusivity import shear_diffusivity
 from .grid import AdeGrid
@@ -495,7 +495,7 @@ def _resolve_flow(flow, scene):
     if isinstance(flow, str | os.PathLike):
         flow = open_flow(flow)
     elif isinstance(flow, xr.Dataset):
-        validate(flow)
+        flow = validate(conform_flow(flow))
     else:
         raise TypeError("flow must be a flow dataset or a path to a netCDF flow file")
     if scene is None and flow.attrs.get("scene"):
@@ -1116,6 +1116,9 @@ def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset
     attrs["random_mixture_intensity"] = floor_i
     attrs["random_mixture_rsd"] = floor_rsd
     attrs["mean_c"] = run.mean_c if run.mean_c is not None else math.nan
+    if run.flow.attrs.get("conformed"):
+        attrs["flow_conformed"] = run.flow.attrs["conformed"]
+        attrs["history"] = f"flow read leniently; it lacked: {run.flow.attrs['conformed']}"
     kwargs = {}
     if run.ndim == 3:
         kwargs["z"] = coords["z"]
