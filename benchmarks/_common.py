@@ -289,7 +289,7 @@ def machine() -> dict:
         "git_modified_files": modified,
         "package_source_sha1": source_digest(),
         "platform": platform.platform(),
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "load_average_at_start": load_average(),
         "cpu_pressure_at_start": cpu_pressure(),
     }

@@ -12,6 +12,7 @@ import copy
 import difflib
 import json
 import math
+import tomllib
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -19,7 +20,6 @@ from typing import Any
 
 import jsonschema
 import tomli_w
-import tomllib
 
 __all__ = [
     "Scene",

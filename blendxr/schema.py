@@ -597,7 +597,7 @@ def conform_flow(ds: xr.Dataset, *, origin: str | None = None) -> xr.Dataset:
 
 
 def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def _append_history(history: str | None, what: str) -> str:

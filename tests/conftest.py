@@ -17,7 +17,8 @@ SCENE_TOML = """\
 name = "canned-drum"
 
 [vessel]
-shape = "drum"
+kind = "drum"
+ndim = 2
 diameter = 0.15
 width = 0.05
 

@@ -170,5 +170,21 @@ def test_run_without_a_scene_solves_the_default_tote_and_mixes(tmp_path, capsys)
     assert (tmp_path / "mixing.png").stat().st_size > 0
     captured = capsys.readouterr()
     assert "RSD" in captured.out and "the flow's fill holds" in captured.out
-    # warnings (the coarse demo's clipped fill) come as single lines, like the errors
+    # with -q, standard error holds warnings only (their form: the test below)
+    assert "Traceback" not in captured.err
     assert all(line.startswith("blendxr: warning: ") for line in captured.err.splitlines())
+
+
+def test_a_warning_is_one_line_like_the_errors(monkeypatch, capsys):
+    import warnings
+
+    import blendxr.cli as cli
+
+    def warns(args):
+        warnings.warn("the flow's fill holds 90 % of the bed:\n  see docs/flow.md", stacklevel=2)
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_scenes", warns)
+    assert main(["scenes"]) == 0
+    err = capsys.readouterr().err
+    assert err == "blendxr: warning: the flow's fill holds 90 % of the bed: see docs/flow.md\n"

@@ -812,3 +812,10 @@ def test_a_complete_blendxr_flow_is_not_touched(flow_2d):
     from blendxr.schema import conform_flow
 
     assert conform_flow(flow_2d) is flow_2d
+
+
+def test_the_canned_scene_is_a_valid_scene():
+    """The scene the canned datasets carry is refused nowhere (an unknown key would be)."""
+    from conftest import SCENE_TOML
+
+    assert bx.load_scene(SCENE_TOML)["vessel"]["kind"] == "drum"

@@ -35,10 +35,10 @@ from __future__ import annotations
 
 import json
 import math
+import tomllib
 from dataclasses import dataclass
 
 import numpy as np
-import tomllib
 import xarray as xr
 
 __all__ = [
