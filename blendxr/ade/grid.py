@@ -46,6 +46,19 @@ class AdeGrid:
     def cell_volume(self) -> float:
         return float(np.prod(self.spacing))
 
+    @staticmethod
+    def covering_shape(lows, highs, cells) -> tuple[int, ...]:
+        """The shape :meth:`covering` gives (padding included), without building it."""
+        lengths = np.asarray(highs, float) - np.asarray(lows, float)
+        if np.isscalar(cells) or np.ndim(cells) == 0:
+            h = float(lengths.max()) / int(cells)
+            counts = np.maximum(np.ceil(lengths / h - 1e-9).astype(np.int64), 1)
+        else:
+            counts = np.asarray(cells, np.int64)
+            if counts.shape != lengths.shape:
+                raise ValueError(f"cells: {len(counts)} values given for a {len(lengths)}-D flow")
+        return tuple(int(n) + 2 for n in counts)
+
     @classmethod
     def covering(cls, lows, highs, cells) -> AdeGrid:
         """A grid over the box [lows, highs] plus one padding cell on every side.

@@ -449,8 +449,8 @@ def plan(flow, settings: MixSettings) -> dict:
             raise ValueError(f"flow coordinate {name} needs at least 2 cells")
     lows = [c[0] - 0.5 * (c[1] - c[0]) for c in coords]
     highs = [c[-1] + 0.5 * (c[1] - c[0]) for c in coords]
-    grid = AdeGrid.covering(lows, highs, s.cells)
-    n_cells = math.prod(grid.shape)
+    shape = AdeGrid.covering_shape(lows, highs, s.cells)  # counted before it is built
+    n_cells = math.prod(shape)
     snapshots = len(s.snapshots) + 1 if s.snapshots is not None else 12
     need = n_cells * (BYTES_PER_CELL[ndim] + 8 * snapshots)
     budget = s.memory_budget_mb * 2**20
@@ -465,7 +465,7 @@ def plan(flow, settings: MixSettings) -> dict:
         )
         raise ValueError(
             f"numerics.cells = {s.cells} gives {n_cells:.3g} ADE cells "
-            f"({' x '.join(map(str, grid.shape))}), which need about {need / 2**20:.4g} MiB, "
+            f"({' x '.join(map(str, shape))}), which need about {need / 2**20:.4g} MiB, "
             f"{where}: choose about numerics.cells <= {max(int(cells * scale), 1)} or raise "
             "numerics.memory_budget_mb"
         )
@@ -481,7 +481,7 @@ def plan(flow, settings: MixSettings) -> dict:
                 "own stable dt)"
             )
     return {
-        "grid": grid,
+        "grid": AdeGrid.covering(lows, highs, s.cells),
         "cells": n_cells,
         "records": records,
         "bytes": need,
@@ -609,8 +609,14 @@ class _Run:
     # --- initial state ----------------------------------------------------
     def initialise(self) -> None:
         phase0 = self.reader.get(0)
-        if not (phase0.fill[self.vessel > 0] > 0).any():
-            raise ValueError("the flow has no material at rev_phase 0: nothing to mix")
+        # the least fill the scheme counts as material (below it c is undefined)
+        least = M_MIN if self.settings.scheme == "finite-volume" else MATERIAL_THRESHOLD
+        if not (phase0.fill[self.vessel > 0] > least).any():
+            raise ValueError(
+                f"the flow has no material at rev_phase 0 (no cell in the vessel with fill "
+                f"above {least:g}, the least the {self.settings.scheme} scheme counts): "
+                "nothing to mix"
+            )
         c0 = _initial_concentration(self.settings, self.grid, phase0.fill)
         if self.settings.scheme == "finite-volume":
             self.state.m[...] = np.where(self.vessel, phase0.fill, 0.0)
@@ -642,6 +648,12 @@ class _Run:
         cell = self.settings.sampling_cell
         if cell is None:
             cell = 5 * self.settings.d
+        extent = max(len(c) * h for c, h in zip(self.grid.coords, self.grid.spacing, strict=True))
+        if cell > extent:
+            raise ValueError(
+                f"mixing.sampling_cell = {cell:g} m is larger than the flow's domain "
+                f"({extent:.4g} m across): no sampling cell fits"
+            )
         h = self.grid.spacing
         if max(h) - min(h) > 1e-9 * max(h):
             return None  # anisotropic ADE cells: sampling cells cannot be whole cubes
