@@ -106,7 +106,7 @@ def run(factor: float, cohesion: float, dilation: float) -> dict:
         sim.run(progress=False)
         wall = time.perf_counter() - started
     # the solver's own dataset, as solve_flow builds it
-    flow = solver._flow_from(sim, wall, "time")
+    flow = solver.sim.dataset(wall=wall)
     fill_last, vel_last, _ = sim.last.fields()
     fill_prev, vel_prev, _ = sim.previous.fields()
     line = surface_line(flow)

@@ -58,7 +58,6 @@ from _common import (  # noqa: E402
 import blendxr as bx  # noqa: E402
 from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
-    _flow_from,
     lab_velocities,
     periodicity,
 )
@@ -155,8 +154,8 @@ def periodicity_case(fraction, twin=False) -> dict:
     started = time.perf_counter()
     sim.run(progress=False, callback=check)
     wall = time.perf_counter() - started
-    flow = bx.validate(_flow_from(sim, wall, "time"))
-    before = bx.validate(_flow_from(sim, wall, "time", revolution="previous"))
+    flow = bx.validate(sim.dataset(wall=wall))
+    before = bx.validate(sim.dataset("previous", wall=wall))
     mixed, mixed_before = (
         bx.mix(f, revolutions=MIX_REVOLUTIONS, cells=50, output_every=0.5, progress=False)
         for f in (flow, before)
@@ -233,7 +232,7 @@ def paper_case(scaling, revolutions=3) -> dict:
     started = time.perf_counter()
     sim.run(progress=False, callback=watch)
     wall = time.perf_counter() - started
-    flow = bx.validate(_flow_from(sim, wall, "time"))
+    flow = bx.validate(sim.dataset(wall=wall))
     (w1, n1), (w2, n2) = marks["rev1"], marks["rev2"]
     per_step = (w2 - w1) / (n2 - n1)  # revolution 2: turning, the bed in its periodic flow
     return {

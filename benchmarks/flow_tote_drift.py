@@ -49,7 +49,6 @@ from _common import (  # noqa: E402
 import blendxr as bx  # noqa: E402
 from blendxr.flow.solver import (  # noqa: E402
     FlowSimulation,
-    _flow_from,
     fields_change,
     occupied_volume_over_seeded,
 )
@@ -111,7 +110,7 @@ def run_case(name: str) -> dict:
         }
         if r >= 2:
             row["eq30"] = _eq30(sim, fields[r - 1], fields[r])
-            flow = _flow_from(sim, time.perf_counter() - started, "time")
+            flow = sim.dataset(wall=time.perf_counter() - started)
             rsd[r] = bx.mix(flow, **MIX)["rsd"].values
             row["mix_rsd"] = rsd[r].tolist()
             if r - 1 in rsd:

@@ -18,7 +18,6 @@ from blendxr.flow.solver import (
     FlowBlowUpError,
     FlowSimulation,
     PhaseAverager,
-    _flow_from,
     _warn_of_clipped_fill,
     coarsen_fields,
     lab_velocities,
@@ -276,7 +275,7 @@ def uninterrupted_drum():
             middle.append(s.steps)
 
     sim.run(progress=False, callback=note)
-    return scene, sim, _flow_from(sim, 0.0, "time"), middle[0]
+    return scene, sim, sim.dataset(wall=0.0), middle[0]
 
 
 def test_run_resumed_in_the_middle_of_a_recorded_revolution_is_the_same_run(
@@ -298,7 +297,7 @@ def test_run_resumed_in_the_middle_of_a_recorded_revolution_is_the_same_run(
         np.testing.assert_array_equal(
             getattr(second.particles, name), getattr(whole.particles, name), err_msg=name
         )
-    _assert_same_flow(flow, _flow_from(second, 0.0, "time"))
+    _assert_same_flow(flow, second.dataset(wall=0.0))
 
 
 def test_solve_flow_stopped_by_wall_time_resumes_to_the_same_flow(tmp_path, uninterrupted_drum):
@@ -328,7 +327,7 @@ def test_every_revolution_is_compared_with_the_one_before(tmp_path):
     assert sim.recording == 2 and sim.history == []
     expected = revolution_change(sim, sim.previous, sim.last)
     sim.run(progress=False)
-    flow = _flow_from(sim, 0.0, "time")
+    flow = sim.dataset(wall=0.0)
     np.testing.assert_array_equal(flow.attrs["periodicity_history_revolution"], [2, 3])
     for c in ("vx", "vy"):
         assert flow.attrs[f"periodicity_history_{c}"][0] == expected[c]
@@ -375,7 +374,7 @@ def test_flow_averaged_over_revolutions_is_their_volume_weighted_mean():
     assert single.last.samples.sum() == held[4][2].sum()  # the last revolution alone
     scene["solver"]["average_revolutions"] = 2
     pooled, _ = _by_revolution(scene, 4)
-    flow = _flow_from(pooled, 0.0, "time")
+    flow = pooled.dataset(wall=0.0)
     assert flow.attrs["averaged_revolutions"] == 2
     cell_volume = pooled.settings.output_cell**2
     fill, vel = _fields_of(held[3], held[4], cell_volume=cell_volume)

@@ -27,7 +27,7 @@ from scipy.optimize import brentq
 
 from ..schema import flow_dataset
 
-__all__ = ["rolling_drum", "solid_body_rotation", "swirl", "uniform"]
+__all__ = ["from_particles", "rolling_drum", "solid_body_rotation", "swirl", "uniform"]
 
 _FRAMES = ("vessel", "lab")
 
@@ -935,3 +935,7 @@ def rolling_drum(
         rpm=rpm,
         gravity=gravity,
     )
+
+
+# flows binned from another code's particles sit beside the analytic ones (``bx.flows``)
+from .binning import from_particles  # noqa: E402

@@ -300,6 +300,23 @@ def _centred_in_z(origin: np.ndarray, h: float, shape: tuple) -> bool:
     return shape[2] % 2 == 0 and math.isclose(-origin[2], top, abs_tol=1e-9 * h)
 
 
+def output_grid(vessel, h: float):
+    """The flow dataset's cells for a vessel: (origin, shape, axes, vessel mask).
+
+    Cell centres on multiples of h plus a half, one empty layer beyond the vessel's
+    bounds; a cell belongs to the vessel when its centre lies inside or within half a
+    cell of the wall (partly filled wall cells carry their fill and stay in the domain).
+    """
+    lower, upper = (np.asarray(b, float) for b in vessel.bounds)
+    lo = np.floor(lower / h - 1e-9) * h - h
+    hi = np.ceil(upper / h + 1e-9) * h + h
+    shape = tuple(int(round(n)) for n in (hi - lo) / h)
+    axes = [lo[a] + h * (np.arange(n) + 0.5) for a, n in enumerate(shape)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    inside = (vessel.sdf(centres) < 0.5 * h).astype(np.int8)
+    return lo, shape, axes, inside
+
+
 def _rotation(theta: float, ndim: int) -> np.ndarray:
     c, s = math.cos(theta), math.sin(theta)
     r = np.eye(ndim)
@@ -812,19 +829,18 @@ class FlowSimulation:
             return (x[:, 0] < 0).astype(float)
         return (x[:, 1] >= np.median(x[:, 1])).astype(float)
 
+    def dataset(
+        self, revolution: str = "last", *, wall: float | None = None, stopped: str = "time"
+    ) -> xr.Dataset:
+        """The flow dataset (``flow/1``) of the run so far: the phase averages of its last
+        recorded revolution (or with ``revolution="previous"`` of the one before), with
+        the solver's attributes (periodicity, packing, cost; ``wall``: the wall time to
+        report, default the stepping loop's)."""
+        return _flow_from(self, self.wall_seconds if wall is None else wall, stopped, revolution)
+
     def _output_grid(self) -> None:
-        h = self.settings.output_cell
-        lower, upper = (np.asarray(b, float) for b in self.vessel.bounds)
-        lo = np.floor(lower / h - 1e-9) * h - h
-        hi = np.ceil(upper / h + 1e-9) * h + h
-        self.out_origin = lo
-        self.out_shape = tuple(int(round(n)) for n in (hi - lo) / h)
-        axes = [lo[a] + h * (np.arange(n) + 0.5) for a, n in enumerate(self.out_shape)]
-        self.out_axes = axes
-        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-        # a cell belongs to the vessel when its centre lies inside or within half a cell
-        # of the wall: partly filled wall cells carry their EVF and stay in the domain
-        self.out_vessel = (self.vessel.sdf(centres) < 0.5 * h).astype(np.int8)
+        grid = output_grid(self.vessel, self.settings.output_cell)
+        self.out_origin, self.out_shape, self.out_axes, self.out_vessel = grid
 
     def _check_range(self) -> None:
         p, g = self.particles, self.grid
