@@ -121,7 +121,7 @@ def _attrs(flow) -> dict:
 def _last_revolution(sim) -> tuple[np.ndarray, np.ndarray]:
     """(fill, lab-frame velocities) of the last recorded revolution."""
     fill, vel, _ = sim.last.fields()
-    return fill, lab_velocities(sim, vel)
+    return fill, lab_velocities(sim.output, vel)
 
 
 def twin_case(fraction, reference: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -81,7 +81,7 @@ def _average(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np
 
 def _eq30(sim, a, b) -> dict:
     """Eq. (30) from fields a to fields b, lab and vessel frame."""
-    change = fields_change(sim, a, b, vessel_frame=True)
+    change = fields_change(sim.output, a, b, vessel_frame=True)
     return {
         "lab": {c: change[c] for c in COMPONENTS},
         "vessel": {c: change[f"vessel_frame_{c}"] for c in COMPONENTS},

@@ -238,7 +238,7 @@ def test_lab_velocities_add_the_rigid_rotation_turned_to_each_phase():
     sim = FlowSimulation(drum_scene(0.4, rpm=10.0))
     n = 4
     shape = tuple(len(axis) for axis in sim.out_axes)
-    lab = lab_velocities(sim, np.zeros((n, *shape, 2)))
+    lab = lab_velocities(sim.output, np.zeros((n, *shape, 2)))
     x, y = np.meshgrid(*sim.out_axes, indexing="ij")
     for k in range(n):
         # a point fixed in the vessel at (x, y) is at R(theta) (x, y) in the lab, where
