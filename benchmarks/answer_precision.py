@@ -179,6 +179,15 @@ for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
         "150",
     )
 
+# the paper's rate-independent Mohr-Coulomb against the optional mu(I) friction on the
+# paper's 40 % top-bottom case, at 10 mm (the Mohr-Coulomb member shares its flow with
+# the flow-cell group's 10 mm member)
+GROUPS["tote-40-top-bottom_rheology"] = (
+    "tote-40-top-bottom",
+    {"mohr-coulomb_10mm": {"flow.cell": 0.01}, "mu(I)_10mm": {"flow.cell": 0.01, **MU_I}},
+    "mohr-coulomb_10mm",
+)
+
 CASES = {
     f"{group}:{member}": (base, values)
     for group, (base, members, _) in GROUPS.items()

@@ -55,6 +55,8 @@ def test_mix_writes_valid_files_and_a_picture(tmp_path, capsys):
         (["flow", "drum-2d-mpm", "--set", "operation.rpm=nan"], "not a finite number"),
         (["flow", "drum-2d-mpm", "--set", "solver.stiffness_scaling=inf"], "finite"),
         (["flow", "drum-2d-mpm", "--set", "operation.rpm=1e6"], "critical speed"),
+        (["flow", "drum-2d-mpm", "--cell", "1e-9"], "choose solver.cell >="),
+        (["mix", "swirl-2d", "--dt", "1e-9", "--cells", "8"], "steps"),
     ],
 )
 def test_bad_input_gives_one_line_and_status_2(argv, word, tmp_path, capsys, monkeypatch):

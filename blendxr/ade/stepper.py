@@ -52,6 +52,8 @@ BYTES_PER_CELL = {2: 350, 3: 420}
 MAX_RECORDS = 1_000_000
 #: at most this many cell updates planned with a given dt (about a day of stepping)
 MAX_PLANNED_CELL_UPDATES = 1e13
+#: at most this many steps planned with a given dt
+MAX_PLANNED_STEPS = 1e9
 #: at most this many diffusion sub-steps in one advection step of the finite volumes
 MAX_DIFFUSION_SUBSTEPS = 1000
 
@@ -473,12 +475,12 @@ def plan(flow, settings: MixSettings) -> dict:
         rpm = float(flow.attrs.get("rpm", 0.0))
         period = 60.0 / rpm if rpm > 0 else math.inf
         updates = s.revolutions * period / s.dt * n_cells
-        if updates > MAX_PLANNED_CELL_UPDATES:
+        if updates > MAX_PLANNED_CELL_UPDATES or s.revolutions * period / s.dt > MAX_PLANNED_STEPS:
             raise ValueError(
                 f"dt = {s.dt:g} s asks for {s.revolutions * period / s.dt:.3g} steps of "
-                f"{n_cells:.3g} cells ({updates:.3g} cell updates, at most "
-                f"{MAX_PLANNED_CELL_UPDATES:.0e}): give a larger dt, or none (the scheme's "
-                "own stable dt)"
+                f"{n_cells:.3g} cells ({updates:.3g} cell updates; at most "
+                f"{MAX_PLANNED_STEPS:.0e} steps and {MAX_PLANNED_CELL_UPDATES:.0e} cell "
+                "updates): give a larger dt, or none (the scheme's own stable dt)"
             )
     return {
         "grid": AdeGrid.covering(lows, highs, s.cells),

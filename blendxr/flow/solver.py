@@ -226,6 +226,62 @@ def _warn_of_dilation(settings: SolverSettings, material: Material) -> None:
         )
 
 
+#: at most this many particle updates planned for one flow run (about a year at the
+#: solver's few million updates a second on two cores)
+MAX_PLANNED_UPDATES = 1e14
+
+
+def plan_flow(scene: Scene, vessel, settings: SolverSettings, material: Material) -> dict:
+    """What a flow run will hold and do, estimated before a particle is seeded; refused
+    with the number and what to change when it cannot fit in ``numerics.memory_budget_mb``
+    (or the machine's available memory) or would take more than
+    :data:`MAX_PLANNED_UPDATES` particle updates.
+
+    The particles are bounded by the vessel's volume at ``particles_per_cell`` a cell
+    side (the bed takes less), the nodes by the vessel's box, the steps by the elastic
+    CFL limit at rest (the run's dt is at most that).
+    """
+    from ..ade.stepper import _available_memory
+
+    d = vessel.ndim
+    h = settings.cell
+    particles = vessel.volume / h**d * settings.per_cell**d
+    lower, upper = (np.asarray(b, float) for b in vessel.bounds)
+    nodes = math.prod(float(n) / h + 2 * GRID_PADDING + 1 for n in upper - lower)
+    per_particle = Particles(np.zeros((1, d)), 1.0, 1.0).nbytes
+    per_node = 8 * (max(1, numba.get_num_threads()) * (d + 1) + 2 * d + 10)
+    out_cells = math.prod(float(n) / settings.output_cell + 3 for n in upper - lower)
+    averages = 3 * settings.phases * out_cells * (d + 1) * 8
+    need = particles * per_particle + nodes * per_node + averages
+    budget = float(scene["numerics"]["memory_budget_mb"]) * 2**20
+    limit = min(budget, _available_memory())
+    if need > limit:
+        fit = h * (need / limit) ** (1.0 / d)
+        raise SceneError(
+            [
+                f"solver.cell = {h:g} m needs about {particles:.3g} particles and "
+                f"{nodes:.3g} nodes, about {need / 2**20:.4g} MiB, above "
+                f"{'numerics.memory_budget_mb' if limit == budget else 'what is available'} "
+                f"({limit / 2**20:.0f} MiB): choose solver.cell >= {fit:.3g} m or raise "
+                "numerics.memory_budget_mb"
+            ]
+        )
+    end = settings.settle_time + (
+        settings.revolutions * 60.0 / settings.rpm if settings.rpm > 0 else settings.duration
+    )
+    steps = end / (settings.courant * h / material.p_wave_speed)
+    if steps * particles > MAX_PLANNED_UPDATES:
+        raise SceneError(
+            [
+                f"solver.cell = {h:g} m asks for about {steps:.3g} steps of {particles:.3g} "
+                f"particles ({steps * particles:.3g} updates, at most "
+                f"{MAX_PLANNED_UPDATES:.0e}): a larger solver.cell, a larger "
+                "solver.stiffness_scaling (a faster dt) or fewer solver.revolutions"
+            ]
+        )
+    return {"particles": particles, "nodes": nodes, "bytes": need, "steps": steps}
+
+
 def _threads(particles: int) -> int:
     """Threads for a run: one below PARALLEL_MIN_PARTICLES.
 
@@ -256,6 +312,7 @@ class FlowSimulation:
         self.vessel = vessel_from_scene(self.scene)
         self.settings = s = SolverSettings.from_scene(self.scene, self.vessel)
         self.material = Material.from_scene(self.scene)
+        self.plan = plan_flow(self.scene, self.vessel, s, self.material)
         _warn_of_dilation(s, self.material)
         self.ndim = self.vessel.ndim
         direction = np.zeros(self.ndim)
