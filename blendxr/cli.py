@@ -51,6 +51,7 @@ def _mix_overrides(args) -> dict:
         overrides["dt"] = args.dt
     if args.checkpoint:
         overrides["checkpoint"] = args.checkpoint
+        overrides["resume"] = not args.no_resume
     return overrides
 
 
@@ -87,6 +88,7 @@ def _cmd_flow(args) -> int:
         scene,
         particles=args.particles,
         checkpoint=args.checkpoint,
+        resume=not args.no_resume,
         progress=not args.quiet,
         wall_time=args.wall_time,
     )
@@ -224,6 +226,7 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--dt", type=float, help="time step in s (refused above the limit)")
         p.add_argument("--initial", help="loading: top-bottom, axial, transverse")
         p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
+        add_no_resume(p)
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
         add_set(p)
         p.add_argument(
@@ -231,6 +234,14 @@ def _parser() -> argparse.ArgumentParser:
         )
         p.add_argument(
             "--no-cache", dest="no_cache", action="store_true", help="solve the flow anew"
+        )
+
+    def add_no_resume(p):
+        p.add_argument(
+            "--no-resume",
+            dest="no_resume",
+            action="store_true",
+            help="start afresh, overwriting an existing --checkpoint file",
         )
 
     def add_set(p):
@@ -259,6 +270,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--revolutions", type=int, help="revolutions turned (>= 2)")
     p.add_argument("--stiffness-scaling", dest="stiffness_scaling", type=float)
     p.add_argument("--checkpoint", help="checkpoint file; an existing one is resumed")
+    add_no_resume(p)
     p.add_argument("--wall-time", dest="wall_time", type=float, help="stop after S seconds")
     p.add_argument("--particles", action="store_true", help="also write particles.nc")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

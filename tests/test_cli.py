@@ -190,3 +190,12 @@ def test_a_warning_is_one_line_like_the_errors(monkeypatch, capsys):
     assert main(["scenes"]) == 0
     err = capsys.readouterr().err
     assert err == "blendxr: warning: the flow's fill holds 90 % of the bed: see docs/flow.md\n"
+
+
+def test_a_foreign_checkpoint_is_refused_and_no_resume_starts_afresh(tmp_path, capsys):
+    base = ["mix", "swirl-2d", "--cells", "16", "--revolutions", "0.25", "-q", "-o",
+            str(tmp_path), "--checkpoint", str(tmp_path / "run.ckpt")]  # fmt: skip
+    assert main(base) == 0
+    assert main([*base, "--k1", "0.2"]) == 2
+    assert "--no-resume" in capsys.readouterr().err
+    assert main([*base, "--k1", "0.2", "--no-resume"]) == 0

@@ -948,7 +948,7 @@ class _Run:
         if meta.get("fingerprint") != self.settings.fingerprint():
             raise ValueError(
                 f"checkpoint {path} belongs to a run with other settings; "
-                "remove it or pass resume=False"
+                "remove it, pass resume=False, or give --no-resume on the shell"
             )
         self.state.load({k: v for k, v in arrays.items() if k in self.state.arrays()})
         self.state.reverse = bool(meta["reverse"])

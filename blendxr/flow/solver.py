@@ -684,7 +684,7 @@ class FlowSimulation:
         arrays, meta = read_checkpoint(path)
         if meta.get("fingerprint") != self.fingerprint():
             raise ValueError(
-                f"checkpoint {path} belongs to another scene; remove it or pass resume=False"
+                f"checkpoint {path} belongs to another scene; remove it, pass resume=False, or give --no-resume on the shell"
             )
         self.particles.load(arrays)
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
