@@ -510,3 +510,13 @@ def test_an_initial_dataarray_that_would_be_guessed_at_is_refused(make, words):
         bx.mix(flow, initial=c0, revolutions=0.1, cells=8, progress=False)
     for word in words:
         assert word in str(err.value)
+
+
+def test_the_checkpoint_schedule_saves_on_each_multiple_once():
+    from blendxr.driver import CheckpointSchedule
+
+    saves = CheckpointSchedule(0.5)
+    due = [r for r in (0.25, 0.5, 0.75, 1.0, 1.0, 1.25, 1.75) if saves.due(r)]
+    assert due == [0.5, 1.0, 1.75]
+    saves.resume_at(1.2)  # a run resumed part way: the next save at 1.5
+    assert not saves.due(1.25) and saves.due(1.5)

@@ -22,6 +22,7 @@ import xarray as xr
 
 from .. import metrics
 from .._version import __version__
+from ..driver import CheckpointSchedule, StopRules, progress_bar
 from ..scene import Scene, check_values, default_of, fit_snapshots, load_scene
 from ..schema import conform_flow, mixing_dataset, validate
 from . import kernels, stability
@@ -574,7 +575,7 @@ class _Run:
         self.snapshots: dict[float, np.ndarray] = {}
         # a stored-phase interval a stop left unfinished: (start, end, steps done)
         self.interval: tuple[float, float, int] | None = None
-        self.deadline = math.inf  # perf_counter time of wall_time
+        self.stops = StopRules()  # max_steps and wall_time, set by the caller
         self.sampling_cell = self._sampling_cell()
         self.mean_c = None  # the mean of c, from the first record (it is conserved)
 
@@ -821,12 +822,7 @@ class _Run:
 
     def _stop_now(self) -> str | None:
         """ "max_steps" or "wall_time" once either is reached, else None."""
-        limit = self.settings.max_steps
-        if limit is not None and self.steps >= limit:
-            return "max_steps"
-        if wallclock.perf_counter() >= self.deadline:
-            return "wall_time"
-        return None
+        return self.stops.reason(self.steps)
 
     def _refresh(self, a, b, w: float, dt: float, limit: float) -> None:
         """Blend the flow fields at weight w and prepare the scheme's per-cell data."""
@@ -969,21 +965,6 @@ class _Run:
         return True
 
 
-def _progress_bar(settings: MixSettings, total: float):
-    from tqdm.auto import tqdm
-
-    show = settings.progress
-    if show is None:
-        show = os.isatty(2)
-    return tqdm(
-        total=total,
-        unit="rev",
-        disable=not show,
-        leave=False,
-        bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} rev [{elapsed}<{remaining}{postfix}]",
-    )
-
-
 def mix(flow, scene=None, **overrides) -> xr.Dataset:
     """Run the advection-diffusion model of mixing through a flow.
 
@@ -1029,8 +1010,7 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
     settings = _settings_from(scene, overrides)
     started = wallclock.perf_counter()
     run = _Run(flow, scene, settings, plan(flow, settings))
-    if settings.wall_time is not None:
-        run.deadline = started + settings.wall_time
+    run.stops = StopRules(settings.max_steps, settings.wall_time, started)
     outputs, snaps = _event_times(settings, run.period)
     run._snapshot_revs = [float(r) for r in snaps]
     events = np.union1d(outputs, snaps)
@@ -1040,11 +1020,10 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
     else:
         run.initialise()
         run.record()
-    next_checkpoint = (
-        math.floor(run.t / run.period / settings.checkpoint_every + 1e-9) + 1
-    ) * settings.checkpoint_every
+    saves = CheckpointSchedule(settings.checkpoint_every)  # in revolutions
+    saves.resume_at(run.t / run.period)
     stopped_by = "revolutions"
-    bar = _progress_bar(settings, settings.revolutions)
+    bar = progress_bar(settings.progress, settings.revolutions, "rev")
     bar.update(run.t / run.period)
     try:
         for rev in events:
@@ -1067,15 +1046,11 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
                     break
             bar.update(done - bar.n)
             bar.set_postfix_str(f"rsd {run.records['rsd'][-1]:.3f}")
-            if checkpoint is not None and rev >= next_checkpoint - 1e-9:
+            if checkpoint is not None and saves.due(rev):
                 run.save_checkpoint(checkpoint)
-                next_checkpoint += settings.checkpoint_every
-            elapsed = wallclock.perf_counter() - started
-            if settings.wall_time is not None and elapsed >= settings.wall_time:
-                stopped_by = "wall_time"
-                break
-            if settings.max_steps is not None and run.steps >= settings.max_steps:
-                stopped_by = "max_steps"
+            reason = run.stops.reason(run.steps)
+            if reason is not None:
+                stopped_by = reason
                 break
     except _StopRun as stop:
         stopped_by = stop.reason

@@ -41,6 +41,7 @@ import numpy as np
 import xarray as xr
 
 from .. import __version__
+from ..driver import CheckpointSchedule, StopRules, progress_bar
 from ..scene import Scene, SceneError, load_scene
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
@@ -684,7 +685,8 @@ class FlowSimulation:
         arrays, meta = read_checkpoint(path)
         if meta.get("fingerprint") != self.fingerprint():
             raise ValueError(
-                f"checkpoint {path} belongs to another scene; remove it, pass resume=False, or give --no-resume on the shell"
+                f"checkpoint {path} belongs to another scene; remove it, pass resume=False, "
+                "or give --no-resume on the shell"
             )
         self.particles.load(arrays)
         self.starts = mpm.chunk_starts(self.particles.count, self.grid.threads)
@@ -731,8 +733,9 @@ class FlowSimulation:
         bar = _progress_bar(progress, end, self)
         threads_before = numba.get_num_threads()
         numba.set_num_threads(min(self.grid.threads, threads_before))
-        started = time.perf_counter()
-        last_save = started
+        stops = StopRules(max_steps, wall_time)
+        saves = CheckpointSchedule(self.settings.checkpoint_every, start=stops.started)
+        started = stops.started
         stopped = "time"
         try:
             while self.t < end - 1e-12:
@@ -750,14 +753,11 @@ class FlowSimulation:
                 now = time.perf_counter()
                 if self.steps % 50 == 0:
                     _update_bar(bar, self, now - started)
-                if checkpoint is not None and now - last_save >= self.settings.checkpoint_every:
+                if checkpoint is not None and saves.due(now):
                     self.save_checkpoint(checkpoint)
-                    last_save = now
-                if wall_time is not None and now - started >= wall_time:
-                    stopped = "wall_time"
-                    break
-                if max_steps is not None and self.steps >= max_steps:
-                    stopped = "max_steps"
+                reason = stops.reason(self.steps)
+                if reason is not None:
+                    stopped = reason
                     break
         finally:
             self.wall_seconds += time.perf_counter() - started
@@ -769,16 +769,7 @@ class FlowSimulation:
 
 
 def _progress_bar(progress, end: float, sim: FlowSimulation):
-    from tqdm.auto import tqdm
-
-    show = os.isatty(2) if progress is None else progress
-    bar = tqdm(
-        total=round(end, 6),
-        unit="s",
-        disable=not show,
-        leave=False,
-        bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s simulated [{elapsed}<{remaining}{postfix}]",
-    )
+    bar = progress_bar(progress, end, "s", precision=3, label="s simulated")
     bar.n = round(sim.t, 6)
     return bar
 
