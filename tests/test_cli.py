@@ -106,6 +106,7 @@ def test_invalid_dataset_is_reported_by_validate(tmp_path, capsys):
     assert "vx" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_console_script_error_has_no_traceback(tmp_path):
     run = subprocess.run(
         [sys.executable, "-m", "blendxr.cli", "mix", "nope"],
@@ -125,6 +126,7 @@ def test_scenes_lists_builtin_scenes(capsys):
         assert name in out
 
 
+@pytest.mark.slow
 def test_flow_verb_solves_writes_a_valid_flow_and_particles(tmp_path, capsys):
     status = main(["flow", "drum-2d-mpm", "-o", str(tmp_path), "--particles", "-q"])
     assert status == 0
@@ -150,6 +152,7 @@ def test_periodicity_history_names_the_revolutions_compared(last, n, label):
     assert _blocks(last, n) == label
 
 
+@pytest.mark.slow
 def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
     scene = tmp_path / "bad.toml"
     scene.write_text(
@@ -161,6 +164,7 @@ def test_flow_verb_refuses_a_scene_value_out_of_range(tmp_path, capsys):
     assert err.count("\n") == 1 and "material.density" in err
 
 
+@pytest.mark.slow
 def test_run_without_a_scene_solves_the_default_tote_and_mixes(tmp_path, capsys):
     """The README's first command (mixing shortened): flow solver + mixing + report."""
     status = main(["run", "-o", str(tmp_path), "--revolutions", "1", "--cells", "30", "-q"])

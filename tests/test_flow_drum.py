@@ -242,6 +242,7 @@ def drum_surface(drum_flow):
     return surface_line(drum_flow)
 
 
+@pytest.mark.slow
 def test_solver_drum_turns_counter_clockwise_and_its_surface_rises_towards_plus_x(
     drum_flow, drum_surface
 ):
@@ -256,6 +257,7 @@ def test_solver_drum_turns_counter_clockwise_and_its_surface_rises_towards_plus_
     assert np.all(sv["speed"].values[middle] > 0)
 
 
+@pytest.mark.slow
 def test_solver_drum_surface_sits_at_the_friction_angle(drum_surface):
     # cohesionless Mohr-Coulomb material rolls at a dynamic angle close to φ; at
     # 10 rpm in a 150 mm drum the Froude number ω²R/g is 0.008, too small to steepen it
@@ -274,16 +276,19 @@ def angles_by_friction():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("phi", [20.0, 35.0])
 def test_solver_drum_angle_follows_the_scenes_friction_angle(angles_by_friction, phi):
     # measured: 22.6° and 33.5° at 7.5 mm (21.8° and 32.7° at 5 mm)
     assert angles_by_friction[phi] == pytest.approx(phi, abs=3.0)
 
 
+@pytest.mark.slow
 def test_solver_drum_angle_rises_with_the_friction_angle(angles_by_friction):
     assert angles_by_friction[35.0] - angles_by_friction[20.0] > 0.6 * 15.0
 
 
+@pytest.mark.slow
 def test_solver_drum_surface_is_flat(drum_flow, drum_surface):
     h = drum_flow.attrs["solver_cell_m"]
     # the exact flat surface of the analytic drum leaves 0.05 h rms (interpolation);
@@ -292,6 +297,7 @@ def test_solver_drum_surface_is_flat(drum_flow, drum_surface):
     assert drum_surface.max_residual < 1.0 * h
 
 
+@pytest.mark.slow
 def test_solver_drum_layer_returns_what_the_rigid_bed_below_carries(drum_flow, drum_surface):
     # DESIGN §7's mass balance, for the bed as the solver has it: rigid rotation at ω
     # carries ω (r_e² - r_b²)/2 between the bed's outer edge r_e and the layer's base
@@ -307,6 +313,7 @@ def test_solver_drum_layer_returns_what_the_rigid_bed_below_carries(drum_flow, d
     np.testing.assert_allclose(q["upslope_flux"], q["flux"], rtol=0.10)
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(
     reason="at 5 mm cells the layer carries 13-19 % less than omega (L^2 - s^2) / 2 in the "
     "middle of the chord (benchmarks/results/flow_drum.md), because the formula is the "

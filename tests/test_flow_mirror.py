@@ -144,6 +144,7 @@ def test_unknown_symmetry_names_the_key():
         FlowSimulation(_tote("xy"))
 
 
+@pytest.mark.slow
 def test_outputs_of_a_half_run_describe_the_whole_bed(tmp_path):
     scene = load_scene(_tote("auto", revolutions=2))
     sim = FlowSimulation(scene)

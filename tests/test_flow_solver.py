@@ -95,6 +95,7 @@ def drum_scene(fraction, rpm=30.0, revolutions=2, cell=0.01):
     }
 
 
+@pytest.mark.slow
 def test_a_full_vessel_turns_as_a_rigid_body():
     # the elastic sway under the turning gravity scales with 1/E: 3 % of omega R with
     # E / 100, 0.28 % with E / 10, 0.03 % unscaled (measured), so E / 10 here
@@ -107,6 +108,7 @@ def test_a_full_vessel_turns_as_a_rigid_body():
     assert speed.max() < 0.01 * omega_r
 
 
+@pytest.mark.slow
 def test_solve_flow_gives_a_valid_flow_that_conserves_material_and_mixes(tmp_path):
     scene = drum_scene(0.4)
     flow, particles = solve_flow(scene, particles=True, progress=False)
@@ -278,6 +280,7 @@ def uninterrupted_drum():
     return scene, sim, sim.dataset(wall=0.0), middle[0]
 
 
+@pytest.mark.slow
 def test_run_resumed_in_the_middle_of_a_recorded_revolution_is_the_same_run(
     tmp_path, uninterrupted_drum
 ):
@@ -300,6 +303,7 @@ def test_run_resumed_in_the_middle_of_a_recorded_revolution_is_the_same_run(
     _assert_same_flow(flow, second.dataset(wall=0.0))
 
 
+@pytest.mark.slow
 def test_solve_flow_stopped_by_wall_time_resumes_to_the_same_flow(tmp_path, uninterrupted_drum):
     scene, whole, flow, _ = uninterrupted_drum
     budget = whole.wall_seconds / 5  # about five stops, wherever they fall
@@ -318,6 +322,7 @@ def test_solve_flow_stopped_by_wall_time_resumes_to_the_same_flow(tmp_path, unin
     _assert_same_flow(flow, resumed)
 
 
+@pytest.mark.slow
 def test_every_revolution_is_compared_with_the_one_before(tmp_path):
     # eq. (30) between each two successive revolutions, as the paper's Table 3 gives it:
     # the entry of revolution 2 compares the averages of revolutions 1 and 2 as they
@@ -485,6 +490,7 @@ def test_coarsening_refuses_a_bad_factor_or_shape():
         coarsen_fields(fill, vel[..., :1], 2)
 
 
+@pytest.mark.slow
 def test_checkpoint_of_another_scene_is_refused(tmp_path):
     path = tmp_path / "flow.ckpt.nc"
     FlowSimulation(drum_scene(0.4)).run(max_steps=5, progress=False, checkpoint=path)
@@ -492,6 +498,7 @@ def test_checkpoint_of_another_scene_is_refused(tmp_path):
         FlowSimulation(drum_scene(0.5)).load_checkpoint(path)
 
 
+@pytest.mark.slow
 def test_instability_stops_with_step_time_and_place(monkeypatch):
     sim = FlowSimulation(drum_scene(0.4))
     monkeypatch.setattr(sim, "stable_dt", lambda: 0.2)  # far beyond the elastic limit
@@ -513,6 +520,7 @@ def test_a_particle_off_the_grid_stops_the_run_naming_it():
         sim._check_state()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("section", "key", "value", "fragment"),
     [

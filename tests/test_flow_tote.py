@@ -15,6 +15,7 @@ import blendxr as bx
 from blendxr.flow.solver import FlowSimulation
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fraction", [0.4, 0.6])
 def test_tote_flow_is_valid_stays_inside_and_mixes(fraction):
     scene = {

@@ -112,6 +112,7 @@ def test_set_on_the_shell_changes_the_scene_and_refuses_bad_keys(capsys, tmp_pat
     assert status == 2 and len(err.splitlines()) == 1 and "did you mean mixing.loading" in err
 
 
+@pytest.mark.slow
 def test_a_flag_given_as_zero_is_a_value_and_is_validated(capsys, tmp_path):
     status = main(["flow", "drum-2d-mpm", "-o", str(tmp_path), "-q", "--cell", "0"])
     err = capsys.readouterr().err
@@ -214,6 +215,7 @@ def _small_drum_scene(**values):
     return bx.load_scene("drum-2d", {**base, **values})
 
 
+@pytest.mark.slow
 def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
     scene = _small_drum_scene(**{"mixing.stop_rsd": 0.3})
     mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)
@@ -225,6 +227,7 @@ def test_the_stop_rule_stops_at_the_first_record_at_or_below_the_level():
     assert mixed["snapshot_revolution"].values[-1] == pytest.approx(mixed["revolution"].values[-1])
 
 
+@pytest.mark.slow
 def test_the_last_state_is_not_kept_twice_beside_a_planned_snapshot_a_rounding_away():
     from blendxr.ade.stepper import _Run, _settings_from
 
@@ -238,6 +241,7 @@ def test_the_last_state_is_not_kept_twice_beside_a_planned_snapshot_a_rounding_a
     assert list(run.snapshots) == [0.5]
 
 
+@pytest.mark.slow
 def test_a_stop_at_a_planned_snapshot_keeps_one_snapshot_there():
     planned = [0.25 * k for k in range(13)]  # every record is a planned snapshot
     scene = _small_drum_scene(**{"mixing.stop_rsd": 0.3, "mixing.snapshots": planned})
@@ -247,6 +251,7 @@ def test_a_stop_at_a_planned_snapshot_keeps_one_snapshot_there():
     assert np.all(np.diff(revs) > 0) and revs[-1] == pytest.approx(mixed["revolution"].values[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "keyword, value",
     [("stop_rsd", -0.1), ("stop_rsd", "flor"), ("stop_intensity", 0), ("min_intensity_cells", 1)],
@@ -258,6 +263,7 @@ def test_mix_keywords_are_checked_against_the_scene_schema(keyword, value):
         bx.mix(flow, scene, progress=False, **{keyword: value})
 
 
+@pytest.mark.slow
 def test_the_floor_stop_uses_the_random_mixture_of_the_sampling_cells():
     scene = _small_drum_scene(**{"mixing.stop_intensity": "floor", "mixing.revolutions": 6})
     mixed = bx.mix(bx.scene_flow(scene)[0], scene, progress=False)
@@ -273,6 +279,7 @@ def test_the_floor_stop_uses_the_random_mixture_of_the_sampling_cells():
     )
 
 
+@pytest.mark.slow
 def test_sampling_cells_qualify_by_the_flows_fill():
     scene = _small_drum_scene(**{"mixing.revolutions": 2})
     flow = bx.scene_flow(scene)[0]
@@ -302,6 +309,7 @@ def test_sampling_cells_qualify_by_the_flows_fill():
     assert counts.min() >= 0.9 * counts.max()
 
 
+@pytest.mark.slow
 def test_run_writes_the_report_and_reuses_the_cached_flow(tmp_path):
     cache = tmp_path / "cache"
 
@@ -339,6 +347,7 @@ def test_run_writes_the_report_and_reuses_the_cached_flow(tmp_path):
         assert report["stages"][stage]["peak_memory_mb"] > 0
 
 
+@pytest.mark.slow
 def test_run_refuses_an_output_that_is_a_file_before_any_work(tmp_path, capsys):
     target = tmp_path / "taken"
     target.write_text("x")
@@ -348,6 +357,7 @@ def test_run_refuses_an_output_that_is_a_file_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "flows").exists()
 
 
+@pytest.mark.slow
 def test_calibrate_on_the_shell_prints_the_best_k1_and_writes_the_cost_plot(tmp_path, capsys):
     values = {"flow.parameters.cells": 32, "numerics.cells": 72}
     scene = bx.load_scene("drum-2d", values)
@@ -373,6 +383,7 @@ def test_calibrate_on_the_shell_prints_the_best_k1_and_writes_the_cost_plot(tmp_
         assert ds.attrs["best_k1"] == pytest.approx(best, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_a_failed_run_leaves_the_previous_outputs_whole(tmp_path, monkeypatch):
     """Outputs are staged and renamed together: a failure while writing them (here the
     snapshot picture) keeps every file of the previous run and leaves no staged file."""

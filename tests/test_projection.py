@@ -151,6 +151,7 @@ def turned_drums():
     return out
 
 
+@pytest.mark.slow
 def test_projected_bed_keeps_its_packing_and_its_volume_by_spacing_is_its_volume_by_j(
     turned_drums,
 ):
@@ -161,6 +162,7 @@ def test_projected_bed_keeps_its_packing_and_its_volume_by_spacing_is_its_volume
     assert turned_drums[0][0] > 1.15
 
 
+@pytest.mark.slow
 def test_a_projected_run_resumed_from_its_checkpoint_is_the_same_run(tmp_path):
     scene = _drum(7, cell=0.01)  # a period that does not divide the checkpoint's step
     whole = FlowSimulation(scene)
@@ -193,6 +195,7 @@ def test_mirror_fold_gives_the_fill_of_the_bed_and_its_image():
     np.testing.assert_allclose(folded, expected, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_a_mirrored_3d_bed_is_projected_and_stays_within_its_packing():
     import blendxr as bx
     from blendxr.flow.solver import node_packing
