@@ -520,3 +520,12 @@ def test_the_checkpoint_schedule_saves_on_each_multiple_once():
     assert due == [0.5, 1.0, 1.75]
     saves.resume_at(1.2)  # a run resumed part way: the next save at 1.5
     assert not saves.due(1.25) and saves.due(1.5)
+
+
+def test_a_callback_sees_every_record():
+    flow = bx.flows.swirl(ndim=2, cells=16, n_phases=4, size=0.2)
+    seen = []
+    mixed = bx.mix(flow, revolutions=1.0, output_every=0.25, cells=24, progress=False,
+                   callback=lambda state: seen.append((state.revolution, state.rsd)))  # fmt: skip
+    np.testing.assert_allclose([r for r, _ in seen], mixed["revolution"].values[1:])
+    np.testing.assert_array_equal([v for _, v in seen], mixed["rsd"].values[1:])

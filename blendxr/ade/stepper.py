@@ -16,6 +16,7 @@ import os
 import time as wallclock
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import xarray as xr
@@ -133,6 +134,7 @@ class MixSettings:
     max_steps: int | None = None
     check_every: int = 25
     refresh_per_phase: int | None = 2
+    callback: object = None
     stop_rsd: float | str | None = None
     stop_intensity: float | str | None = None
     min_intensity_cells: int = _schema_default("min_intensity_cells")
@@ -184,6 +186,7 @@ class MixSettings:
             "wall_time",
             "max_steps",
             "memory_budget_mb",
+            "callback",
             "stop_rsd",
             "stop_intensity",
             "extra",
@@ -965,6 +968,22 @@ class _Run:
         return True
 
 
+def _notify(callback, run: _Run) -> None:
+    """Call a user's callback at a record with what the record holds (read only)."""
+    if callback is None:
+        return
+    r = run.records
+    callback(
+        SimpleNamespace(
+            revolution=r["time"][-1] / run.period,
+            rsd=r["rsd"][-1],
+            intensity=r["intensity"][-1],
+            steps=run.steps,
+            dt=run.dt_used[1],
+        )
+    )
+
+
 def mix(flow, scene=None, **overrides) -> xr.Dataset:
     """Run the advection-diffusion model of mixing through a flow.
 
@@ -990,7 +1009,8 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
         above the stability limit), ``memory_budget_mb``, ``progress``, ``checkpoint``
         (path), ``checkpoint_every`` (revolutions), ``resume``, ``wall_time`` (s),
         ``max_steps``, ``refresh_per_phase`` (flow-field updates per stored-phase
-        interval, default 2; None updates them every step).
+        interval, default 2; None updates them every step), ``callback`` (called at
+        every record with its revolution, rsd, intensity, steps and dt).
 
     Returns
     -------
@@ -1039,6 +1059,7 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
             done = rev
             if rev in outputs or rev in snaps:
                 run.record()
+                _notify(settings.callback, run)
                 reason = run.stop_reason()
                 if reason is not None:
                     stopped_by = reason
