@@ -92,7 +92,8 @@ def _allowed(schema: dict) -> str:
         if word in schema
     ]
     kind = {"number": "a number", "integer": "an integer", "string": "a string"}
-    return " ".join([kind.get(schema.get("type"), str(schema.get("type", "a value"))), *bounds])
+    what = kind.get(schema.get("type"), str(schema.get("type", "a value")))
+    return " ".join([what, " and ".join(bounds)]) if bounds else what
 
 
 def _unknown_keys(section: str, error: jsonschema.ValidationError) -> str:
