@@ -41,11 +41,31 @@ class OutputGrid:
         return self.omega > 0 and not self.lab_frame
 
 
-def _rotation(theta: float, ndim: int) -> np.ndarray:
+def rotation(theta: float, ndim: int) -> np.ndarray:
+    """The lab-frame rotation by theta about z (counter-clockwise seen from +z)."""
     c, s = math.cos(theta), math.sin(theta)
     r = np.eye(ndim)
     r[0, 0], r[0, 1], r[1, 0], r[1, 1] = c, -s, s, c
     return r
+
+
+def vessel_to_lab(x: np.ndarray, v: np.ndarray, theta: float, omega: float):
+    """Positions and velocities (..., d) of the vessel frame seen from the lab, the
+    vessel turned by theta at rate omega: x_lab = R x, v_lab = R (v + omega e_z x x)."""
+    r = rotation(theta, x.shape[-1])
+    u = v.copy()
+    u[..., 0] -= omega * x[..., 1]
+    u[..., 1] += omega * x[..., 0]
+    return x @ r.T, u @ r.T
+
+
+def lab_to_vessel(x: np.ndarray, v: np.ndarray, theta: float, omega: float):
+    """The inverse of :func:`vessel_to_lab`."""
+    r = rotation(theta, x.shape[-1])
+    xv, u = x @ r, v @ r  # R^T, row by row
+    u[..., 0] += omega * xv[..., 1]
+    u[..., 1] -= omega * xv[..., 0]
+    return xv, u
 
 
 def _centred_in_z(origin: np.ndarray, h: float, shape: tuple) -> bool:
@@ -322,11 +342,8 @@ def lab_velocities(grid: OutputGrid, vel: np.ndarray) -> np.ndarray:
     out = np.empty_like(vel)
     centres = np.stack(np.meshgrid(*grid.axes, indexing="ij"), axis=-1)
     for k in range(vel.shape[0]):
-        u = vel[k].copy()
-        u[..., 0] -= grid.omega * centres[..., 1]
-        u[..., 1] += grid.omega * centres[..., 0]
-        rotation = _rotation(2.0 * math.pi * k / vel.shape[0], grid.ndim)
-        out[k] = u @ rotation.T
+        theta = 2.0 * math.pi * k / vel.shape[0]
+        out[k] = vessel_to_lab(centres, vel[k], theta, grid.omega)[1]
     return out
 
 

@@ -18,18 +18,12 @@ import xarray as xr
 from ..scene import load_scene
 from ..schema import flow_dataset
 from ..vessels import Drum, vessel_from_scene
+from .averaging import lab_to_vessel, vessel_to_lab
 
 __all__ = ["from_particles"]
 
 #: the columns of a particle table (z, vz only in 3-D; volume optional)
 COLUMNS = ("t", "x", "y", "z", "vx", "vy", "vz", "volume")
-
-
-def _rotation(theta: float, ndim: int) -> np.ndarray:
-    c, s = math.cos(theta), math.sin(theta)
-    r = np.eye(ndim)
-    r[0, 0], r[0, 1], r[1, 0], r[1, 1] = c, -s, s, c
-    return r
 
 
 def _from_table(table, ndim: int):
@@ -196,22 +190,10 @@ def _sample_volumes(volumes, j: int, n: int, grain: float) -> np.ndarray:
 
 
 def _to_stored_frame(x, v, theta: float, omega: float, frame: str, lab_stored: bool):
-    """Positions and velocities in the frame the flow is stored in.
-
-    The vessel frame turns with the vessel: x_lab = R(theta) x_vessel and v_lab =
-    R(theta) (v_vessel + omega e_z x x_vessel).
-    """
-    ndim = x.shape[1]
-    r = _rotation(theta, ndim)
+    """Positions and velocities in the frame the flow is stored in (the vessel frame; a
+    drum's flow in the lab frame)."""
     if frame == "lab" and not lab_stored:
-        xv = x @ r  # R^T x, row by row
-        vv = v @ r
-        vv[:, 0] += omega * xv[:, 1]
-        vv[:, 1] -= omega * xv[:, 0]
-        return np.ascontiguousarray(xv), np.ascontiguousarray(vv)
-    if frame == "vessel" and lab_stored:
-        vl = v.copy()
-        vl[:, 0] -= omega * x[:, 1]
-        vl[:, 1] += omega * x[:, 0]
-        return np.ascontiguousarray(x @ r.T), np.ascontiguousarray(vl @ r.T)
-    return x, v
+        x, v = lab_to_vessel(x, v, theta, omega)
+    elif frame == "vessel" and lab_stored:
+        x, v = vessel_to_lab(x, v, theta, omega)
+    return np.ascontiguousarray(x), np.ascontiguousarray(v)

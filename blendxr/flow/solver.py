@@ -56,6 +56,8 @@ from .averaging import (  # noqa: F401  (the solver's public helpers, as before 
     lab_velocities,
     output_grid,
     periodicity,
+    rotation,
+    vessel_to_lab,
 )
 from .material import Material
 from .output import (  # noqa: F401
@@ -87,13 +89,6 @@ class FlowBlowUpError(RuntimeError):
 
 
 # ----------------------------------------------------------------------------- state
-
-
-def _rotation(theta: float, ndim: int) -> np.ndarray:
-    c, s = math.cos(theta), math.sin(theta)
-    r = np.eye(ndim)
-    r[0, 0], r[0, 1], r[1, 0], r[1, 1] = c, -s, s, c
-    return r
 
 
 # ----------------------------------------------------------------------------- settings
@@ -481,7 +476,7 @@ class FlowSimulation:
             return self.gravity_direction * g * scale, 0.0, damping
         # the vessel has turned by theta about +z: lab vectors appear turned by -theta
         theta = self.omega * (t - s.settle_time)
-        return _rotation(-theta, self.ndim) @ (self.gravity_direction * g), self.omega, 0.0
+        return rotation(-theta, self.ndim) @ (self.gravity_direction * g), self.omega, 0.0
 
     def step(self, dt: float) -> None:
         """One MPM step: P2G, grid update, G2P, stress update."""
@@ -600,12 +595,8 @@ class FlowSimulation:
         p = self.particles
         if self.lab_frame:
             theta = self.omega * (self.t - self.settings.settle_time)
-            r = _rotation(theta, self.ndim)
-            x = p.x @ r.T
-            vel = p.v.copy()
-            vel[:, 0] -= self.omega * p.x[:, 1]
-            vel[:, 1] += self.omega * p.x[:, 0]
-            target.add(0, np.ascontiguousarray(x), np.ascontiguousarray(vel @ r.T), p.vol0)
+            x, vel = vessel_to_lab(p.x, p.v, theta, self.omega)
+            target.add(0, np.ascontiguousarray(x), np.ascontiguousarray(vel), p.vol0)
         else:
             target.add(target.bin_of(phase), p.x, p.v, p.vol0)
 
