@@ -13,7 +13,29 @@ import os
 import time
 from dataclasses import dataclass, field
 
-__all__ = ["CheckpointSchedule", "StopRules", "progress_bar"]
+__all__ = ["CheckpointSchedule", "StopRules", "memory_limit", "progress_bar"]
+
+
+def available_memory() -> float:
+    """Bytes this machine has available now (MemAvailable), or inf where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return math.inf
+
+
+def memory_limit(budget_mb: float) -> tuple[float, str]:
+    """The bytes a run may hold: ``numerics.memory_budget_mb`` or what the machine has
+    available, whichever is less, with words for a refusal that names it."""
+    budget = float(budget_mb) * 2**20
+    available = available_memory()
+    if budget <= available:
+        return budget, f"numerics.memory_budget_mb = {budget_mb:g}"
+    return available, f"the {available / 2**20:.0f} MiB this machine has available"
 
 
 @dataclass

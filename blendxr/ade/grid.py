@@ -72,16 +72,11 @@ class AdeGrid:
             the number of cells per axis.
         """
         lows = np.asarray(lows, float)
-        highs = np.asarray(highs, float)
-        lengths = highs - lows
+        lengths = np.asarray(highs, float) - lows
+        counts = np.array(AdeGrid.covering_shape(lows, highs, cells)) - 2  # without padding
         if np.isscalar(cells) or np.ndim(cells) == 0:
-            h = float(lengths.max()) / int(cells)
-            counts = np.maximum(np.ceil(lengths / h - 1e-9).astype(int), 1)
-            spacing = np.full(len(lengths), h)
+            spacing = np.full(len(lengths), float(lengths.max()) / int(cells))
         else:
-            counts = np.asarray(cells, int)
-            if counts.shape != lengths.shape:
-                raise ValueError(f"cells: {len(counts)} values given for a {len(lengths)}-D flow")
             spacing = lengths / counts
         coords = []
         for lo, length, n, h in zip(lows, lengths, counts, spacing, strict=True):

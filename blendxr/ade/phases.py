@@ -62,8 +62,8 @@ def plausible_speed(flow, coords) -> float:
     the domain, sqrt(2 g D), D the domain's diagonal (rpm and gravity from the flow's
     attributes)."""
     diagonal = math.sqrt(sum((c[-1] - c[0]) ** 2 for c in coords))
-    omega = 2.0 * math.pi * float(flow.attrs.get("rpm", 0.0)) / 60.0
-    gravity = float(flow.attrs.get("gravity", 9.81))
+    omega = 2.0 * math.pi * float(flow.attrs["rpm"]) / 60.0  # both required by flow/1
+    gravity = float(flow.attrs["gravity"])
     return SPEED_MARGIN * (omega * diagonal + math.sqrt(2.0 * gravity * diagonal))
 
 

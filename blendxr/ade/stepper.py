@@ -23,7 +23,7 @@ import xarray as xr
 
 from .. import metrics
 from .._version import __version__
-from ..driver import CheckpointSchedule, StopRules, progress_bar
+from ..driver import CheckpointSchedule, StopRules, memory_limit, progress_bar
 from ..scene import Scene, check_values, default_of, fit_snapshots, load_scene
 from ..schema import conform_flow, mixing_dataset, validate
 from . import kernels, stability
@@ -52,7 +52,7 @@ BOUND_TOLERANCE = 1e-6
 BYTES_PER_CELL = {2: 350, 3: 420}
 #: at most this many records of the mixing curves (outputs) in one run
 MAX_RECORDS = 1_000_000
-#: at most this many cell updates planned with a given dt (about a day of stepping)
+#: at most this many cell updates planned with a given dt
 MAX_PLANNED_CELL_UPDATES = 1e13
 #: at most this many steps planned with a given dt
 MAX_PLANNED_STEPS = 1e9
@@ -414,18 +414,6 @@ def _event_times(settings: MixSettings, period: float):
     return outputs, snaps
 
 
-def _available_memory() -> float:
-    """Bytes this machine has available now (MemAvailable), or inf where unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
-    return math.inf
-
-
 def plan(flow, settings: MixSettings) -> dict:
     """What a run will hold and do, estimated before anything is allocated; refused with
     the number and what to change when it cannot fit or would not end.
@@ -459,21 +447,15 @@ def plan(flow, settings: MixSettings) -> dict:
     n_cells = math.prod(shape)
     snapshots = len(s.snapshots) + 1 if s.snapshots is not None else 12
     need = n_cells * (BYTES_PER_CELL[ndim] + 8 * snapshots)
-    budget = s.memory_budget_mb * 2**20
-    limit, what = min((budget, "numerics.memory_budget_mb"), (_available_memory(), "available"))
+    limit, what = memory_limit(s.memory_budget_mb)
     if need > limit:
         scale = (limit / need) ** (1.0 / ndim)
         cells = s.cells if np.ndim(s.cells) == 0 else max(s.cells)
-        where = (
-            f"above numerics.memory_budget_mb = {s.memory_budget_mb:g}"
-            if what == "numerics.memory_budget_mb"
-            else f"more than the {limit / 2**20:.0f} MiB this machine has available"
-        )
         raise ValueError(
             f"numerics.cells = {s.cells} gives {n_cells:.3g} ADE cells "
             f"({' x '.join(map(str, shape))}), which need about {need / 2**20:.4g} MiB, "
-            f"{where}: choose about numerics.cells <= {max(int(cells * scale), 1)} or raise "
-            "numerics.memory_budget_mb"
+            f"above {what}: choose about numerics.cells <= {max(int(cells * scale), 1)} or "
+            "raise numerics.memory_budget_mb"
         )
     if s.dt is not None:
         rpm = float(flow.attrs.get("rpm", 0.0))
@@ -491,7 +473,7 @@ def plan(flow, settings: MixSettings) -> dict:
         "cells": n_cells,
         "records": records,
         "bytes": need,
-        "cache_bytes": max(budget - need, 0.0),
+        "cache_bytes": max(limit - need, 0.0),
     }
 
 
@@ -799,7 +781,7 @@ class _Run:
                 self.steps += 1
                 if self.steps % s.check_every == 0:
                     self.check()
-                reason = self._stop_now()
+                reason = self.stops.reason(self.steps)
                 if reason is not None and i + 1 < n:
                     self.interval = (t0, t_end, i + 1)
                     raise _StopRun(reason)
@@ -822,10 +804,6 @@ class _Run:
             )
         self.max_substeps = max(self.max_substeps, n_sub)
         return n_sub
-
-    def _stop_now(self) -> str | None:
-        """ "max_steps" or "wall_time" once either is reached, else None."""
-        return self.stops.reason(self.steps)
 
     def _refresh(self, a, b, w: float, dt: float, limit: float) -> None:
         """Blend the flow fields at weight w and prepare the scheme's per-cell data."""

@@ -41,7 +41,7 @@ import numpy as np
 import xarray as xr
 
 from .. import __version__
-from ..driver import CheckpointSchedule, StopRules, progress_bar
+from ..driver import CheckpointSchedule, StopRules, memory_limit, progress_bar
 from ..scene import Scene, SceneError, load_scene
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
@@ -114,6 +114,12 @@ class SolverSettings:
     symmetry: str
     average_revolutions: int
     density_projection: int
+
+    @property
+    def end_time(self) -> float:
+        """Simulated seconds of the run: settling, then the revolutions (or duration)."""
+        turning = self.revolutions * 60.0 / self.rpm if self.rpm > 0 else self.duration
+        return self.settle_time + turning
 
     @classmethod
     def from_scene(cls, scene: Scene, vessel) -> SolverSettings:
@@ -222,8 +228,8 @@ def _warn_of_dilation(settings: SolverSettings, material: Material) -> None:
         )
 
 
-#: at most this many particle updates planned for one flow run (about a year at the
-#: solver's few million updates a second on two cores)
+#: at most this many particle updates planned for one flow run (months of stepping at
+#: the rate of benchmarks/results/flow_throughput.md)
 MAX_PLANNED_UPDATES = 1e14
 
 
@@ -237,8 +243,6 @@ def plan_flow(scene: Scene, vessel, settings: SolverSettings, material: Material
     side (the bed takes less), the nodes by the vessel's box, the steps by the elastic
     CFL limit at rest (the run's dt is at most that).
     """
-    from ..ade.stepper import _available_memory
-
     d = vessel.ndim
     h = settings.cell
     particles = vessel.volume / h**d * settings.per_cell**d
@@ -249,23 +253,17 @@ def plan_flow(scene: Scene, vessel, settings: SolverSettings, material: Material
     out_cells = math.prod(float(n) / settings.output_cell + 3 for n in upper - lower)
     averages = 3 * settings.phases * out_cells * (d + 1) * 8
     need = particles * per_particle + nodes * per_node + averages
-    budget = float(scene["numerics"]["memory_budget_mb"]) * 2**20
-    limit = min(budget, _available_memory())
+    limit, what = memory_limit(scene["numerics"]["memory_budget_mb"])
     if need > limit:
         fit = h * (need / limit) ** (1.0 / d)
         raise SceneError(
             [
                 f"solver.cell = {h:g} m needs about {particles:.3g} particles and "
-                f"{nodes:.3g} nodes, about {need / 2**20:.4g} MiB, above "
-                f"{'numerics.memory_budget_mb' if limit == budget else 'what is available'} "
-                f"({limit / 2**20:.0f} MiB): choose solver.cell >= {fit:.3g} m or raise "
-                "numerics.memory_budget_mb"
+                f"{nodes:.3g} nodes, about {need / 2**20:.4g} MiB, above {what}: choose "
+                f"solver.cell >= {fit:.3g} m or raise numerics.memory_budget_mb"
             ]
         )
-    end = settings.settle_time + (
-        settings.revolutions * 60.0 / settings.rpm if settings.rpm > 0 else settings.duration
-    )
-    steps = end / (settings.courant * h / material.p_wave_speed)
+    steps = settings.end_time / (settings.courant * h / material.p_wave_speed)
     if steps * particles > MAX_PLANNED_UPDATES:
         raise SceneError(
             [
@@ -550,10 +548,7 @@ class FlowSimulation:
         return max(0.0, (self.t - self.settings.settle_time) / self.period)
 
     def end_time(self) -> float:
-        s = self.settings
-        if s.rpm > 0:
-            return s.settle_time + s.revolutions * self.period
-        return s.settle_time + s.duration
+        return self.settings.end_time
 
     def _window(self) -> tuple[float, float, float]:
         """(start of the previous averaging window, start of the last, end) in seconds
