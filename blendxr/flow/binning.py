@@ -80,8 +80,8 @@ def from_particles(
         Sample times in seconds (not with a table); they should cover at least one
         revolution after ``t0``, so that every phase bin receives samples.
     scene : Scene, str or mapping
-        The vessel, speed, cells (``flow.cell``, else ``solver.cell``) and phase bins
-        (``flow.phases``) of the flow to make.
+        The vessel, speed, cells and phase bins of the flow to make, resolved as the
+        solver resolves them (``flow.cell``, ``flow.phases``; a drum: one phase).
     volumes : float or array, optional
         Each particle's share of the bed's volume at its seeded packing (m^3; m^2 in
         2-D). Default: the grain volume of ``material.particle_diameter`` over
@@ -105,7 +105,7 @@ def from_particles(
         Data of the wrong shape, NaN, a frame other than "lab" or "vessel", or a phase
         bin that received no sample (give more samples or fewer ``flow.phases``).
     """
-    from .solver import DEFAULT_PHASES, PhaseAverager, output_grid
+    from .solver import PhaseAverager, SolverSettings, output_grid
 
     scene = load_scene(scene)
     vessel = vessel_from_scene(scene)
@@ -124,17 +124,15 @@ def from_particles(
             f"{len(times)} times but {len(positions)} position and {len(velocities)} "
             "velocity samples"
         )
-    rpm = float(scene["operation"]["rpm"])
+    # the output cells, phase bins and speed as the solver resolves them from the scene
+    settings = SolverSettings.from_scene(scene, vessel)
+    rpm, phases, cell = settings.rpm, settings.phases, settings.output_cell
     if rpm <= 0:
         raise ValueError("operation.rpm must be > 0 to bin particles by rev_phase")
     omega, period = 2.0 * math.pi * rpm / 60.0, 60.0 / rpm
     lab_stored = isinstance(vessel, Drum)
-    phases = 1 if lab_stored else int(scene["flow"].get("phases", DEFAULT_PHASES))
-    cell = scene["flow"].get("cell") or scene["solver"].get("cell")
-    if cell is None:
-        raise ValueError("the scene gives no cell size: set flow.cell")
-    origin, shape, axes, inside = output_grid(vessel, float(cell))
-    averager = PhaseAverager(origin, shape, float(cell), phases, inside=inside)
+    origin, shape, axes, inside = output_grid(vessel, cell)
+    averager = PhaseAverager(origin, shape, cell, phases, inside=inside)
     grain = _default_volume(scene, ndim)
     count = 0
     for j, t in enumerate(times):
@@ -164,7 +162,7 @@ def from_particles(
         vz=vel[..., 2] if ndim == 3 else None,
         frame="lab" if lab_stored else "vessel",
         rpm=rpm,
-        gravity=float(scene["operation"]["gravity"]),
+        gravity=settings.gravity,
         scene=scene,
         title=f"blendxr flow binned from particles: {scene.name}",
         attrs={
