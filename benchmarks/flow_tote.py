@@ -56,11 +56,8 @@ from _common import (  # noqa: E402
 )
 
 import blendxr as bx  # noqa: E402
-from blendxr.flow.solver import (  # noqa: E402
-    FlowSimulation,
-    lab_velocities,
-    periodicity,
-)
+from blendxr.flow.averaging import lab_velocities, periodicity  # noqa: E402
+from blendxr.flow.solver import FlowSimulation  # noqa: E402
 
 DEFAULT_SCALING = bx.load_scene("tote-40-top-bottom")["solver"]["stiffness_scaling"]
 PERIODICITY_CELL = 0.0125

@@ -10,7 +10,7 @@ revolution r it reports:
   frame, without the rigid rotation);
 - the bed's volume as the solver carries it (J times the seeded volumes, over the
   seeded volume), the mean contact gap, the mean pressure, and the volume the particles
-  really take (``blendxr.flow.solver.occupied_volume_over_seeded``: the seeded 8
+  really take (``blendxr.flow.output.occupied_volume_over_seeded``: the seeded 8
   particles per cell over the mean count in the cells inside the bed, those whose 26
   neighbours all hold particles), at the revolution's end;
 - the mixing answer on that revolution's flow: ``bx.mix`` over five revolutions
@@ -47,11 +47,9 @@ from _common import (  # noqa: E402
 )
 
 import blendxr as bx  # noqa: E402
-from blendxr.flow.solver import (  # noqa: E402
-    FlowSimulation,
-    fields_change,
-    occupied_volume_over_seeded,
-)
+from blendxr.flow.averaging import fields_change  # noqa: E402
+from blendxr.flow.output import occupied_volume_over_seeded  # noqa: E402
+from blendxr.flow.solver import FlowSimulation  # noqa: E402
 
 NAME = "flow_tote_drift"
 FILL = 0.4

@@ -13,7 +13,7 @@ issue's figure) is reported with each thing that might drive it changed in turn:
 
 Each case also gives eq. (30) in the vessel frame (no rigid rotation in the velocities)
 on the output cells and on blocks of 2³ and 3³ of them
-(:func:`blendxr.flow.solver.coarsen_fields`, fill-weighted): how much of the change
+(:func:`blendxr.flow.averaging.coarsen_fields`, fill-weighted): how much of the change
 lies within a block, at the scale of the cell, and how much is a change of the flow at
 larger scales; the noise part (eq. (30) between the averages of the even- and
 odd-numbered particles, over sqrt 2); the bed's current volume over its seeded one.
@@ -40,12 +40,9 @@ from _common import (  # noqa: E402
     table,
 )
 
-from blendxr.flow.solver import (  # noqa: E402
-    FlowSimulation,
-    coarsen_fields,
-    periodicity,
-    sampling_noise,
-)
+from blendxr.flow.averaging import coarsen_fields, periodicity  # noqa: E402
+from blendxr.flow.output import sampling_noise  # noqa: E402
+from blendxr.flow.solver import FlowSimulation  # noqa: E402
 
 NAME = "flow_tote_periodicity"
 FILL = 0.4

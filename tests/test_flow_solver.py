@@ -14,18 +14,13 @@ import numpy as np
 import pytest
 
 import blendxr as bx
-from blendxr.flow.solver import (
-    FlowBlowUpError,
-    FlowSimulation,
-    PhaseAverager,
+from blendxr.flow.averaging import PhaseAverager, coarsen_fields, lab_velocities, periodicity
+from blendxr.flow.output import (
     _warn_of_clipped_fill,
-    coarsen_fields,
-    lab_velocities,
     occupied_volume_over_seeded,
-    periodicity,
     revolution_change,
-    solve_flow,
 )
+from blendxr.flow.solver import FlowBlowUpError, FlowSimulation, solve_flow
 from blendxr.scene import SceneError
 
 G = 9.81

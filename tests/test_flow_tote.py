@@ -60,7 +60,7 @@ def test_the_solvers_own_particles_binned_give_its_own_flow(monkeypatch, tmp_pat
     """``bx.flows.from_particles`` on the particles the solver deposited in its last
     revolution, given in the lab frame as another code would write them, reproduces the
     solver's flow (the lab-frame turn undone to round-off)."""
-    from blendxr.flow import solver
+    from blendxr.flow import averaging
 
     scene = bx.load_scene(
         {
@@ -74,13 +74,13 @@ def test_the_solvers_own_particles_binned_give_its_own_flow(monkeypatch, tmp_pat
     )
     sim = FlowSimulation(scene)
     samples = []
-    original = solver.PhaseAverager.add
+    original = averaging.PhaseAverager.add
 
     def recording(self, k, x, v, vol):
         samples.append((self, sim.t, x.copy(), v.copy(), vol.copy()))
         return original(self, k, x, v, vol)
 
-    monkeypatch.setattr(solver.PhaseAverager, "add", recording)
+    monkeypatch.setattr(averaging.PhaseAverager, "add", recording)
     sim.run(progress=False)
     monkeypatch.undo()
     own = sim.dataset()

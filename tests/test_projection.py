@@ -11,7 +11,8 @@ import scipy.sparse.linalg as spl
 from blendxr.flow import projection as pr
 from blendxr.flow import reference
 from blendxr.flow.kernels import chunk_starts
-from blendxr.flow.solver import FlowSimulation, occupied_volume_over_seeded
+from blendxr.flow.output import occupied_volume_over_seeded
+from blendxr.flow.solver import FlowSimulation
 
 RNG = np.random.default_rng(7)
 
@@ -198,7 +199,7 @@ def test_mirror_fold_gives_the_fill_of_the_bed_and_its_image():
 @pytest.mark.slow
 def test_a_mirrored_3d_bed_is_projected_and_stays_within_its_packing():
     import blendxr as bx
-    from blendxr.flow.solver import node_packing
+    from blendxr.flow.output import node_packing
 
     scene = bx.load_scene("tote-small", {"solver.density_projection": 5})
     sim = FlowSimulation(scene)

@@ -318,7 +318,8 @@ def fill_histogram(raw: np.ndarray, vessel: np.ndarray) -> dict:
     out["fill_histogram_definition"] = (
         "share of the bed's cells (phase-averaged fill before clipping >= 0.5, every "
         "phase bin) in each bin [edge_i, edge_i+1) of fill_histogram_edges, the last "
-        "open; _wall: the cells within 2 cells of the first cell outside the vessel, "
+        f"open; _wall: the cells within {WALL_LAYERS:g} cells of the first cell outside the "
+        "vessel, "
         "_interior: the rest"
     )
     return out

@@ -2,7 +2,7 @@
 revolution, phase-averaged onto a scene's cells as the built-in solver does.
 
 The particles of each sample time are spread over the output cells by the solver's own
-quadratic B-splines (:class:`blendxr.flow.solver.PhaseAverager`), each into the phase bin
+quadratic B-splines (:class:`blendxr.flow.averaging.PhaseAverager`), each into the phase bin
 of its time, in the frame the solver stores for the vessel (the vessel frame; a drum's
 flow, steady in the lab frame, as one lab-frame phase).
 """
@@ -105,7 +105,8 @@ def from_particles(
         Data of the wrong shape, NaN, a frame other than "lab" or "vessel", or a phase
         bin that received no sample (give more samples or fewer ``flow.phases``).
     """
-    from .solver import PhaseAverager, SolverSettings, output_grid
+    from .averaging import PhaseAverager, output_grid
+    from .solver import SolverSettings
 
     scene = load_scene(scene)
     vessel = vessel_from_scene(scene)

@@ -45,32 +45,23 @@ from ..driver import CheckpointSchedule, StopRules, memory_limit, progress_bar
 from ..scene import Scene, SceneError, load_scene
 from ..vessels import Drum, vessel_from_scene
 from . import kernels as mpm
-from .averaging import (  # noqa: F401  (the solver's public helpers, as before the split)
-    FILL_HISTOGRAM_EDGES,
+from .averaging import (
     OutputGrid,
     PhaseAverager,
     _centred_in_z,
-    coarsen_fields,
-    fields_change,
-    fill_histogram,
-    lab_velocities,
     output_grid,
-    periodicity,
     rotation,
     vessel_to_lab,
 )
 from .material import Material
-from .output import (  # noqa: F401
+from .output import (
     _flow_from,
     _particle_dataset,
     _warn_of_clipped_fill,
-    node_packing,
-    occupied_volume_over_seeded,
     revolution_change,
-    sampling_noise,
 )
 from .projection import DensityProjection
-from .state import _MIRROR, GRID_PADDING, BackgroundGrid, Particles  # noqa: F401
+from .state import _MIRROR, GRID_PADDING, BackgroundGrid, Particles
 from .walls import project_into_vessel, reflect_across_mirror
 
 __all__ = ["FlowBlowUpError", "FlowSimulation", "Material", "solve_flow"]
