@@ -31,6 +31,7 @@ __all__ = [
     "LW_SURFACE",
     "LaxWendroffPlan",
     "fv_max_dt_pair",
+    "fv_support",
     "fv_transport_velocity",
     "lerp_into",
     "lw_max_dt_pair_2d",
@@ -208,9 +209,16 @@ def lw_classify_3d(material, cls, rows, scratch=None):
     _classes_from_box_3d(material, scratch[0], cls, rows)
 
 
+@njit(**_JIT_INLINE)
+def _mix(a, b, w):
+    """The blend a + w (b - a) of two phases' values (w = 0: exactly a)."""
+    return a + w * (b - a)
+
+
 @njit(**_JIT)
-def lw_coefficients_2d(vx, vy, dxx, dyy, cls, dt, dx, dy, coef):
-    """Per-cell coefficients of eq. (6) for interior cells (2-D).
+def lw_coefficients_2d(vel_a, vel_b, dif_a, dif_b, w, cls, dt, dx, dy, coef):
+    """Per-cell coefficients of eq. (6) for interior cells (2-D), of the flow blended at
+    weight ``w`` between two phases (``vel_*``, ``dif_*`` of shape (2, nx, ny)).
 
     ``coef[0:2]`` = nu_k = (w_k - dt/2 (w . grad) v_k) dt / h_k with the effective velocity
     w_k = v_k - dD_kk/dx_k of eq. (4) (eq. 7-8 as they should read, gradients by central
@@ -218,63 +226,96 @@ def lw_coefficients_2d(vx, vy, dxx, dyy, cls, dt, dx, dy, coef):
     mu_k = D_kk dt / h_k**2 (eq. 10-11). The ``(w . grad) v`` term is the part of
     c_tt = w.grad(w.grad c) that eq. (6) omits when the velocity varies in space; without
     it the scheme is only first-order in time on such flows (docs/numerics.md).
-    Other cells are left as they are (never read).
+    The blend is formed where it is read, so no blended field is written; ``w = 0``
+    gives phase a's values bit for bit. Other cells are left as they are (never read).
     """
     nx, ny = cls.shape
+    xa, ya, xb, yb = vel_a[0], vel_a[1], vel_b[0], vel_b[1]
+    pa, qa, pb, qb = dif_a[0], dif_a[1], dif_b[0], dif_b[1]
     for i in prange(1, nx - 1):
         for j in range(1, ny - 1):
             if cls[i, j] != LW_INTERIOR:
                 continue
-            wx = vx[i, j] - (dxx[i + 1, j] - dxx[i - 1, j]) / (2.0 * dx)
-            wy = vy[i, j] - (dyy[i, j + 1] - dyy[i, j - 1]) / (2.0 * dy)
-            adv_x = wx * (vx[i + 1, j] - vx[i - 1, j]) / (2.0 * dx) + wy * (
-                vx[i, j + 1] - vx[i, j - 1]
-            ) / (2.0 * dy)
-            adv_y = wx * (vy[i + 1, j] - vy[i - 1, j]) / (2.0 * dx) + wy * (
-                vy[i, j + 1] - vy[i, j - 1]
-            ) / (2.0 * dy)
+            vx = _mix(xa[i, j], xb[i, j], w)
+            vy = _mix(ya[i, j], yb[i, j], w)
+            dvx_x = _mix(xa[i + 1, j], xb[i + 1, j], w) - _mix(xa[i - 1, j], xb[i - 1, j], w)
+            dvx_y = _mix(xa[i, j + 1], xb[i, j + 1], w) - _mix(xa[i, j - 1], xb[i, j - 1], w)
+            dvy_x = _mix(ya[i + 1, j], yb[i + 1, j], w) - _mix(ya[i - 1, j], yb[i - 1, j], w)
+            dvy_y = _mix(ya[i, j + 1], yb[i, j + 1], w) - _mix(ya[i, j - 1], yb[i, j - 1], w)
+            ddx = _mix(pa[i + 1, j], pb[i + 1, j], w) - _mix(pa[i - 1, j], pb[i - 1, j], w)
+            ddy = _mix(qa[i, j + 1], qb[i, j + 1], w) - _mix(qa[i, j - 1], qb[i, j - 1], w)
+            wx = vx - ddx / (2.0 * dx)
+            wy = vy - ddy / (2.0 * dy)
+            adv_x = wx * dvx_x / (2.0 * dx) + wy * dvx_y / (2.0 * dy)
+            adv_y = wx * dvy_x / (2.0 * dx) + wy * dvy_y / (2.0 * dy)
             nux = wx * dt / dx
             nuy = wy * dt / dy
             coef[0, i, j] = (wx - 0.5 * dt * adv_x) * dt / dx
             coef[1, i, j] = (wy - 0.5 * dt * adv_y) * dt / dy
-            coef[2, i, j] = 0.5 * nux * nux + dxx[i, j] * dt / (dx * dx)
-            coef[3, i, j] = 0.5 * nuy * nuy + dyy[i, j] * dt / (dy * dy)
+            coef[2, i, j] = 0.5 * nux * nux + _mix(pa[i, j], pb[i, j], w) * dt / (dx * dx)
+            coef[3, i, j] = 0.5 * nuy * nuy + _mix(qa[i, j], qb[i, j], w) * dt / (dy * dy)
 
 
 @njit(**_JIT_INLINE)
-def _advective_3d(v, wx, wy, wz, i, j, k, dx, dy, dz):
-    """(w . grad) v at cell (i, j, k), central differences."""
+def _central_3d(va, vb, w, i, j, k, axis):
+    """Central difference (numerator) of the blended field along ``axis`` at (i, j, k)."""
+    if axis == 0:
+        return _mix(va[i + 1, j, k], vb[i + 1, j, k], w) - _mix(va[i - 1, j, k], vb[i - 1, j, k], w)
+    if axis == 1:
+        return _mix(va[i, j + 1, k], vb[i, j + 1, k], w) - _mix(va[i, j - 1, k], vb[i, j - 1, k], w)
+    return _mix(va[i, j, k + 1], vb[i, j, k + 1], w) - _mix(va[i, j, k - 1], vb[i, j, k - 1], w)
+
+
+@njit(**_JIT_INLINE)
+def _advective_3d(va, vb, w, wx, wy, wz, i, j, k, dx, dy, dz):
+    """(w . grad) v of the blended component at cell (i, j, k), central differences."""
     return (
-        wx * (v[i + 1, j, k] - v[i - 1, j, k]) / (2.0 * dx)
-        + wy * (v[i, j + 1, k] - v[i, j - 1, k]) / (2.0 * dy)
-        + wz * (v[i, j, k + 1] - v[i, j, k - 1]) / (2.0 * dz)
+        wx * _central_3d(va, vb, w, i, j, k, 0) / (2.0 * dx)
+        + wy * _central_3d(va, vb, w, i, j, k, 1) / (2.0 * dy)
+        + wz * _central_3d(va, vb, w, i, j, k, 2) / (2.0 * dz)
     )
 
 
 @njit(**_JIT)
-def lw_coefficients_3d(vx, vy, vz, dxx, dyy, dzz, cls, dt, dx, dy, dz, coef):
-    """Per-cell coefficients of eq. (6) for interior cells (3-D); see the 2-D version."""
+def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, dt, dx, dy, dz, coef):
+    """Per-cell coefficients of eq. (6) for interior cells (3-D), of the flow blended at
+    weight ``w`` between two phases (``vel_*``, ``dif_*`` of shape (3, nx, ny, nz)); see
+    the 2-D version."""
     nx, ny, nz = cls.shape
+    xa, ya, za, xb, yb, zb = vel_a[0], vel_a[1], vel_a[2], vel_b[0], vel_b[1], vel_b[2]
+    pa, qa, ra, pb, qb, rb = dif_a[0], dif_a[1], dif_a[2], dif_b[0], dif_b[1], dif_b[2]
     for i in prange(1, nx - 1):
         for j in range(1, ny - 1):
             for k in range(1, nz - 1):
                 if cls[i, j, k] != LW_INTERIOR:
                     continue
-                wx = vx[i, j, k] - (dxx[i + 1, j, k] - dxx[i - 1, j, k]) / (2.0 * dx)
-                wy = vy[i, j, k] - (dyy[i, j + 1, k] - dyy[i, j - 1, k]) / (2.0 * dy)
-                wz = vz[i, j, k] - (dzz[i, j, k + 1] - dzz[i, j, k - 1]) / (2.0 * dz)
-                adv_x = _advective_3d(vx, wx, wy, wz, i, j, k, dx, dy, dz)
-                adv_y = _advective_3d(vy, wx, wy, wz, i, j, k, dx, dy, dz)
-                adv_z = _advective_3d(vz, wx, wy, wz, i, j, k, dx, dy, dz)
+                wx = _mix(xa[i, j, k], xb[i, j, k], w) - _central_3d(pa, pb, w, i, j, k, 0) / (
+                    2.0 * dx
+                )
+                wy = _mix(ya[i, j, k], yb[i, j, k], w) - _central_3d(qa, qb, w, i, j, k, 1) / (
+                    2.0 * dy
+                )
+                wz = _mix(za[i, j, k], zb[i, j, k], w) - _central_3d(ra, rb, w, i, j, k, 2) / (
+                    2.0 * dz
+                )
+                adv_x = _advective_3d(xa, xb, w, wx, wy, wz, i, j, k, dx, dy, dz)
+                adv_y = _advective_3d(ya, yb, w, wx, wy, wz, i, j, k, dx, dy, dz)
+                adv_z = _advective_3d(za, zb, w, wx, wy, wz, i, j, k, dx, dy, dz)
                 nux = wx * dt / dx
                 nuy = wy * dt / dy
                 nuz = wz * dt / dz
                 coef[0, i, j, k] = (wx - 0.5 * dt * adv_x) * dt / dx
                 coef[1, i, j, k] = (wy - 0.5 * dt * adv_y) * dt / dy
                 coef[2, i, j, k] = (wz - 0.5 * dt * adv_z) * dt / dz
-                coef[3, i, j, k] = 0.5 * nux * nux + dxx[i, j, k] * dt / (dx * dx)
-                coef[4, i, j, k] = 0.5 * nuy * nuy + dyy[i, j, k] * dt / (dy * dy)
-                coef[5, i, j, k] = 0.5 * nuz * nuz + dzz[i, j, k] * dt / (dz * dz)
+                coef[3, i, j, k] = 0.5 * nux * nux + _mix(pa[i, j, k], pb[i, j, k], w) * dt / (
+                    dx * dx
+                )
+                coef[4, i, j, k] = 0.5 * nuy * nuy + _mix(qa[i, j, k], qb[i, j, k], w) * dt / (
+                    dy * dy
+                )
+                coef[5, i, j, k] = 0.5 * nuz * nuz + _mix(ra[i, j, k], rb[i, j, k], w) * dt / (
+                    dz * dz
+                )
 
 
 # The stencil loops index rows with unsigned integers: numba wraps negative signed indices
@@ -576,10 +617,15 @@ class LaxWendroffPlan:
 
     def coefficients(self, velocities, diffusivities, dt, spacing):
         """Fold the fields and dt into the per-cell coefficients (after :meth:`classify`)."""
-        if self.ndim == 3:
-            lw_coefficients_3d(*velocities, *diffusivities, self.cls, dt, *spacing, self.coef)
-        else:
-            lw_coefficients_2d(*velocities, *diffusivities, self.cls, dt, *spacing, self.coef)
+        vel = np.ascontiguousarray(np.stack(velocities), dtype=np.float64)
+        dif = np.ascontiguousarray(np.stack(diffusivities), dtype=np.float64)
+        self.coefficients_between(vel, vel, dif, dif, 0.0, dt, spacing)
+
+    def coefficients_between(self, vel_a, vel_b, dif_a, dif_b, w, dt, spacing):
+        """Coefficients of the flow blended at weight ``w`` between two phases (stacked
+        components, shape (ndim, *shape)), without writing the blended fields."""
+        pair = lw_coefficients_3d if self.ndim == 3 else lw_coefficients_2d
+        pair(vel_a, vel_b, dif_a, dif_b, float(w), self.cls, dt, *spacing, self.coef)
 
     def apply(self, c, out):
         """One step of the stencil on interior cells, ``c`` -> ``out``."""
@@ -1273,20 +1319,22 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
 
 
 @njit(**_JIT)
-def _transport_velocity(v, out, dt, h, cap):
-    n0, n, n2 = v.shape
+def _transport_velocity(va, vb, w, out, dt, h, cap):
+    n0, n, n2 = va.shape
     for j in prange(n):
         jm = max(j - 1, 0)
         jp = min(j + 1, n - 1)
         span = (jp - jm) * h
         for a in range(n0):
             for b in range(n2):
-                u = v[a, j, b]
-                factor = 1.0 - 0.5 * dt * (v[a, jp, b] - v[a, jm, b]) / span
+                u = _mix(va[a, j, b], vb[a, j, b], w)
+                up = _mix(va[a, jp, b], vb[a, jp, b], w)
+                um = _mix(va[a, jm, b], vb[a, jm, b], w)
+                factor = 1.0 - 0.5 * dt * (up - um) / span
                 out[a, j, b] = u * min(max(factor, 0.0), cap)
 
 
-def fv_transport_velocity(v, out, axis, dt, h, cap):
+def fv_transport_velocity(v, out, axis, dt, h, cap, v_b=None, w=0.0):
     """Velocity component ``v`` advanced half a step along its own axis, for the sweeps.
 
     ``out = v (1 - dt/2 dv/dx_axis)``, central differences (one-sided at the array ends),
@@ -1308,11 +1356,23 @@ def fv_transport_velocity(v, out, axis, dt, h, cap):
     cap : float
         Largest factor allowed (>= 1 keeps the face Courant numbers within the limit the
         step was chosen for: pass limit / dt).
+    v_b, w : ndarray and float, optional
+        The same component of a second phase and the blend weight: the velocity is
+        ``v + w (v_b - v)``, formed where it is read (no blended field is written).
     """
     shape = v.shape
     view = (int(np.prod(shape[:axis])), shape[axis], int(np.prod(shape[axis + 1 :])))
-    _transport_velocity(v.reshape(view), out.reshape(view), dt, h, cap)
+    v_b = v if v_b is None else v_b
+    _transport_velocity(v.reshape(view), v_b.reshape(view), float(w), out.reshape(view), dt, h, cap)
     return out
+
+
+@njit(**_JIT)
+def fv_support(fill_a, fill_b, w, vessel, least, out):
+    """out = 1 where the fill blended at weight ``w`` exceeds ``least`` inside the vessel
+    (flat arrays): the cells the finite volumes may move material into."""
+    for i in prange(out.size):
+        out[i] = 1 if (_mix(fill_a[i], fill_b[i], w) > least) & (vessel[i] != 0) else 0
 
 
 @njit(**_JIT)

@@ -38,6 +38,15 @@ class PreparedPhase:
     vel: np.ndarray  # (ndim, *shape), m/s
     dif: np.ndarray | None  # (ndim, *shape), m2/s, or None when there is no diffusion
     fill: np.ndarray  # material volume fraction
+    #: the largest diffusivity of each component over the grid (zeros without diffusion)
+    dif_max: np.ndarray = None
+
+    def __post_init__(self):
+        if self.dif_max is None:
+            ndim = self.vel.shape[0]
+            self.dif_max = (
+                np.zeros(ndim) if self.dif is None else self.dif.reshape(ndim, -1).max(axis=1)
+            )
 
     @property
     def velocities(self) -> tuple:

@@ -26,26 +26,19 @@ from .._version import __version__
 from ..driver import CheckpointSchedule, StopRules, memory_limit, progress_bar
 from ..scene import Scene, check_values, default_of, fit_snapshots, load_scene
 from ..schema import conform_flow, mixing_dataset, validate
-from . import kernels, stability
+from . import schemes
 from .diffusivity import shear_diffusivity
 from .grid import AdeGrid
 from .phases import CyclicPhaseReader
+from .schemes import BOUND_TOLERANCE
 
 __all__ = ["SCHEMES", "LOADINGS", "MixSettings", "mix", "BlowUpError"]
 
-SCHEMES = ("finite-volume", "lax-wendroff")
+#: the schemes' names (numerics.scheme), each a module of :mod:`blendxr.ade.schemes`
+SCHEMES = tuple(schemes.SCHEMES)
 LOADINGS = ("top-bottom", "axial", "transverse", "side-side", "left-right")
 _ALIASES = {"side-side": "axial", "left-right": "axial"}
 
-# LW treats a cell as material when its interpolated fill reaches this fraction.
-MATERIAL_THRESHOLD = 0.5
-# FV: c is defined where the carried material fraction exceeds this.
-M_MIN = 1e-9
-# FV: material moves only among cells the flow fills (blended fill above this); no flux
-# crosses the free surface into cells the flow leaves empty (DESIGN §5).
-SUPPORT_FILL = 1e-9
-# How far outside [0, 1] a value may stray (round-off) before the run is stopped.
-BOUND_TOLERANCE = 1e-6
 #: bytes a mixing run holds per ADE cell besides its snapshots (state, double buffers,
 #: blended fields, the three prepared phases of the reader's window, metric
 #: temporaries), measured with tracemalloc on both schemes (the larger, rounded up)
@@ -56,8 +49,6 @@ MAX_RECORDS = 1_000_000
 MAX_PLANNED_CELL_UPDATES = 1e13
 #: at most this many steps planned with a given dt
 MAX_PLANNED_STEPS = 1e9
-#: at most this many diffusion sub-steps in one advection step of the finite volumes
-MAX_DIFFUSION_SUBSTEPS = 1000
 
 
 class _StopRun(Exception):
@@ -230,73 +221,6 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
     if "revolutions" in overrides and "snapshots" not in overrides and values.get("snapshots"):
         values["snapshots"] = tuple(fit_snapshots(values["snapshots"], overrides["revolutions"]))
     return MixSettings(**values)
-
-
-# ----------------------------------------------------------------------------- state
-
-
-class _State:
-    """The prognostic fields of a scheme and their double buffers."""
-
-    def __init__(self, scheme: str, shape: tuple):
-        self.scheme = scheme
-        self.shape = shape
-        if scheme == "finite-volume":
-            self.m = np.zeros(shape)
-            self.q = np.zeros(shape)
-            self.m_next = np.zeros(shape)
-            self.q_next = np.zeros(shape)
-            self.work = kernels.fv_workspace(shape)
-        else:
-            self.c = np.zeros(shape)
-            self.c_next = np.zeros(shape)
-        self.reverse = False
-
-    def arrays(self) -> dict:
-        if self.scheme == "finite-volume":
-            return {"m": self.m, "q": self.q}
-        return {"c": self.c}
-
-    def load(self, arrays: dict) -> None:
-        for name, values in arrays.items():
-            getattr(self, name)[...] = values
-
-
-class _Fields:
-    """The flow fields at the current refresh time, on the ADE grid (reused buffers)."""
-
-    def __init__(self, ndim: int, shape: tuple, with_diffusion: bool, with_fill: bool):
-        self.vel = np.zeros((ndim, *shape))
-        self.dif = np.zeros((ndim, *shape)) if with_diffusion else None
-        self.fill = np.zeros(shape) if with_fill else None
-        self.material = np.zeros(shape, np.uint8) if with_fill else None
-        self.velocities = tuple(self.vel)
-        self.diffusivities = None if self.dif is None else tuple(self.dif)
-        self._key = None
-
-    def blend(self, a, b, w: float) -> bool:
-        """Fields at weight w between prepared phases a and b; False if already there."""
-        key = (a.index, b.index, w if a is not b else 0.0)
-        if key == self._key:
-            return False
-        self._key = key
-        w = 0.0 if a is b else w
-        pairs = [(self.vel, a.vel, b.vel)]
-        if self.dif is not None:
-            pairs.append((self.dif, a.dif, b.dif))
-        if self.fill is not None:
-            pairs.append((self.fill, a.fill, b.fill))
-        for out, x, y in pairs:
-            kernels.lerp_into(out.reshape(-1), x.reshape(-1), y.reshape(-1), w)
-        if self.fill is not None:
-            np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
-        return True
-
-    def support(self, vessel: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """Cells the flow gives material (fill > 0) inside the vessel, as uint8."""
-        np.greater(self.fill, SUPPORT_FILL, out=out.view(bool))
-        out &= vessel
-        return out
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -529,20 +453,7 @@ class _Run:
             flow, self.grid, diffusion, memory_budget=planned["cache_bytes"]
         )
         self.vessel = self.reader.vessel.astype(np.uint8)
-        self.support = self.vessel.copy()
-        # finite volume: the velocities advanced half a step along their own axes
-        self.transport = (
-            tuple(np.zeros(self.grid.shape) for _ in range(self.ndim))
-            if settings.scheme == "finite-volume"
-            else ()
-        )
-        self.state = _State(s.scheme, self.grid.shape)
-        self.fields = _Fields(self.ndim, self.grid.shape, self.with_diffusion, with_fill=True)
-        self.lw_plan = (
-            kernels.LaxWendroffPlan(self.grid.shape) if s.scheme == "lax-wendroff" else None
-        )
-        self._prepared_dt = None
-        self._active = None
+        self.scheme = schemes.make(s.scheme, self.grid, self.vessel, self.with_diffusion)
         self._limits: dict = {}
         self.t = 0.0
         self.steps = 0
@@ -598,7 +509,7 @@ class _Run:
     def initialise(self) -> None:
         phase0 = self.reader.get(0)
         # the least fill the scheme counts as material (below it c is undefined)
-        least = M_MIN if self.settings.scheme == "finite-volume" else MATERIAL_THRESHOLD
+        least = self.scheme.least_fill
         if not (phase0.fill[self.vessel > 0] > least).any():
             raise ValueError(
                 f"the flow has no material at rev_phase 0 (no cell in the vessel with fill "
@@ -606,27 +517,13 @@ class _Run:
                 "nothing to mix"
             )
         c0 = _initial_concentration(self.settings, self.grid, phase0.fill)
-        if self.settings.scheme == "finite-volume":
-            self.state.m[...] = np.where(self.vessel, phase0.fill, 0.0)
-            self.state.q[...] = self.state.m * c0
-        else:
-            self.state.c[...] = c0
+        self.scheme.initialise(phase0.fill, c0)
 
     # --- concentration and metrics ----------------------------------------
     def concentration_and_weight(self, fill=None):
         """c (NaN where no material) and its weight; ``fill``: the flow's fill now, if
         the caller has it already."""
-        s = self.state
-        if s.scheme == "finite-volume":
-            c = np.empty(self.grid.shape)
-            kernels.concentration(s.m, s.q, c, M_MIN)
-            weight = np.where(np.isfinite(c), s.m, 0.0)
-        else:
-            fill = self.current_fill() if fill is None else fill
-            material = fill >= MATERIAL_THRESHOLD
-            c = np.where(material, s.c, np.nan)
-            weight = np.where(material, fill, 0.0)
-        return c, weight
+        return self.scheme.concentration(self.current_fill() if fill is None else fill)
 
     def current_fill(self) -> np.ndarray:
         a, b, w = self.reader.bracket(self._phase_position(self.t))
@@ -678,16 +575,8 @@ class _Run:
         if self.mean_c is None:
             total = float(weight.sum())
             self.mean_c = float(np.nansum(c * weight)) / total if total > 0 else math.nan
-        if self.settings.scheme == "finite-volume":
-            species = float(self.state.q.sum())  # exactly what the scheme conserves
-        else:
-            species = float(np.nansum(c * weight))
-        rec["mass_a"].append(species * self.grid.cell_volume)
-        if self.settings.scheme == "finite-volume":
-            mismatch = np.abs(self.state.m - fill).sum() / max(self.state.m.sum(), 1e-300)
-        else:
-            mismatch = 0.0
-        rec["fill_mismatch"].append(float(mismatch))
+        rec["mass_a"].append(self.scheme.species(c, weight) * self.grid.cell_volume)
+        rec["fill_mismatch"].append(self.scheme.fill_mismatch(fill))
         rev = self.t / self.period
         for r in self.snapshot_revs:
             if abs(r - rev) < 1e-9 and r not in self.snapshots:
@@ -703,24 +592,6 @@ class _Run:
     # --- stepping ---------------------------------------------------------
     def _phase_position(self, t: float) -> float:
         return (t / self.period) * self.reader.n_phases
-
-    def _limit(self, a, b) -> float:
-        """The largest stable dt for any blend of phases a and b (the scheme's own limits)."""
-        h = self.grid.spacing
-        if self.settings.scheme == "lax-wendroff":
-            material = ((a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)).view(
-                np.uint8
-            )
-            dif_a = a.dif if a.dif is not None else self._zero_stack()
-            dif_b = b.dif if b.dif is not None else self._zero_stack()
-            pair = kernels.lw_max_dt_pair_3d if self.ndim == 3 else kernels.lw_max_dt_pair_2d
-            return float(pair(a.vel, dif_a, b.vel, dif_b, material, *h))
-        return float(kernels.fv_max_dt_pair(a.vel, b.vel, self.vessel, np.asarray(h)))
-
-    def _zero_stack(self):
-        if getattr(self, "_zeros_stack", None) is None:
-            self._zeros_stack = np.zeros((self.ndim, *self.grid.shape))
-        return self._zeros_stack
 
     def advance_to(self, t_end: float) -> None:
         """Step from self.t to t_end (no stored-phase boundary inside).
@@ -745,7 +616,7 @@ class _Run:
         key = (a.index, b.index)
         limit = self._limits.get(key)
         if limit is None:
-            limit = self._limits[key] = self._limit(a, b)
+            limit = self._limits[key] = self.scheme.max_dt(a, b)
         s = self.settings
         if s.dt is not None:
             if s.dt > limit:
@@ -760,7 +631,8 @@ class _Run:
         dt = span / n
         self.dt_used[0] = min(self.dt_used[0], dt)
         self.dt_used[1] = max(self.dt_used[1], dt)
-        n_sub = self._substeps(a, b, dt)
+        n_sub = self.scheme.begin_interval(a, b, dt)
+        self.max_substeps = max(self.max_substeps, n_sub)
         # Flow fields (and the scheme's per-cell coefficients) are refreshed in blocks of
         # steps, each at its block's midpoint time: piecewise-constant coefficients in time,
         # second-order in the block length (docs/numerics.md).
@@ -774,9 +646,10 @@ class _Run:
                 continue  # stepped before the stop this run resumes from
             t_mid = t0 + 0.5 * (first + last) * dt
             w = 0.0 if steady else min(max(self._phase_position(t_mid) - k, 0.0), 1.0)
-            self._refresh(a, b, w, dt, limit)
+            self.scheme.prepare(a, b, w, dt, limit)
             for i in range(max(first, done), last):
-                self._step(dt, n_sub)
+                self.scheme.step()
+                self.cell_updates += self.scheme.active_cells(self.steps)
                 self.t += dt
                 self.steps += 1
                 if self.steps % s.check_every == 0:
@@ -788,98 +661,9 @@ class _Run:
         self.interval = None
         self.t = t_end
 
-    def _substeps(self, a, b, dt: float) -> int:
-        """Diffusion sub-steps of one finite-volume step (0: none), refused above
-        :data:`MAX_DIFFUSION_SUBSTEPS`."""
-        if not (self.settings.scheme == "finite-volume" and self.with_diffusion):
-            return 0
-        dmax = tuple(np.maximum(a.dif, b.dif))
-        n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
-        if n_sub > MAX_DIFFUSION_SUBSTEPS:
-            raise ValueError(
-                f"the diffusivity needs {n_sub} sub-steps in one advection step of "
-                f"{dt:.3g} s (explicit diffusion is stable for D dt / h^2 <= 1/2 along each "
-                f"axis); at most {MAX_DIFFUSION_SUBSTEPS}: lower mixing.k1 and mixing.k2, or "
-                "use fewer numerics.cells"
-            )
-        self.max_substeps = max(self.max_substeps, n_sub)
-        return n_sub
-
-    def _refresh(self, a, b, w: float, dt: float, limit: float) -> None:
-        """Blend the flow fields at weight w and prepare the scheme's per-cell data."""
-        f = self.fields
-        changed = f.blend(a, b, w)
-        if self.settings.scheme != "lax-wendroff":
-            if changed:
-                f.support(self.vessel, self.support)
-            if changed or dt != self._prepared_dt:
-                # face Courant numbers may grow by limit/dt at most: still within the limit
-                cap = limit / dt if math.isfinite(limit) else 1.0
-                for axis, (v, out) in enumerate(zip(f.velocities, self.transport, strict=True)):
-                    kernels.fv_transport_velocity(v, out, axis, dt, self.grid.spacing[axis], cap)
-                self._prepared_dt = dt
-            return
-        if changed or dt != self._prepared_dt:
-            plan, st = self.lw_plan, self.state
-            plan.classify(f.material)
-            diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
-            plan.coefficients(f.velocities, diffs, dt, self.grid.spacing)
-            np.copyto(st.c_next, st.c)  # cells the stencil skips stay equal in both buffers
-            self._active = plan.interior_cells()
-            self._prepared_dt = dt
-
-    def _step(self, dt: float, n_sub: int) -> None:
-        st, f, h = self.state, self.fields, self.grid.spacing
-        if st.scheme == "finite-volume":
-            diffs = f.diffusivities if f.diffusivities is not None else self._zeros()
-            step = kernels.fv_step_3d if self.ndim == 3 else kernels.fv_step_2d
-            step(
-                st.m,
-                st.q,
-                st.m_next,
-                st.q_next,
-                st.work,
-                *self.transport,
-                *diffs,
-                self.support,
-                dt,
-                *h,
-                st.reverse,
-                n_sub,
-            )
-            st.m, st.m_next = st.m_next, st.m
-            st.q, st.q_next = st.q_next, st.q
-            st.reverse = not st.reverse
-        else:
-            self.lw_plan.apply(st.c, st.c_next)
-            self.lw_plan.surface(st.c_next, f.fill)
-            st.c, st.c_next = st.c_next, st.c
-        self.cell_updates += self._active_cells()
-
-    def _zeros(self):
-        return tuple(self._zero_stack())
-
-    def _active_cells(self) -> int:
-        if self.settings.scheme == "finite-volume":
-            if self.steps % 50 == 0 or self._active is None:
-                self._active = int(np.count_nonzero(self.state.m > M_MIN))
-        return self._active
-
     def check(self) -> None:
         """Stop with the step and cell if c is non-finite or far outside [0, 1]."""
-        st = self.state
-        if st.scheme == "finite-volume":
-            values = st.q
-            c, _ = self.concentration_and_weight()
-            bad = ~np.isfinite(st.q) | ~np.isfinite(st.m) | (st.m < -BOUND_TOLERANCE)
-            with np.errstate(invalid="ignore"):
-                bad |= np.isfinite(c) & ((c < -BOUND_TOLERANCE) | (c > 1 + BOUND_TOLERANCE))
-            values = c
-        else:
-            values = st.c
-            bad = (
-                ~np.isfinite(values) | (values < -BOUND_TOLERANCE) | (values > 1 + BOUND_TOLERANCE)
-            )
+        bad, values = self.scheme.faults()
         if bad.any():
             cell = tuple(int(i) for i in np.argwhere(bad)[0])
             where = ", ".join(
@@ -899,7 +683,8 @@ class _Run:
     def save_checkpoint(self, path: Path) -> None:
         from ..io import write_checkpoint
 
-        arrays = dict(self.state.arrays())
+        state, scheme_meta = self.scheme.state()
+        arrays = dict(state)
         for name, values in self.records.items():
             arrays[f"record_{name}"] = np.asarray(values, float)
         for r, snap in self.snapshots.items():
@@ -908,7 +693,7 @@ class _Run:
             "t": self.t,
             "steps": self.steps,
             "cell_updates": self.cell_updates,
-            "reverse": int(self.state.reverse),
+            **scheme_meta,
             "fingerprint": self.settings.fingerprint(),
             "dt_min": self.dt_used[0],
             "dt_max": self.dt_used[1],
@@ -927,8 +712,8 @@ class _Run:
                 f"checkpoint {path} belongs to a run with other settings; "
                 "remove it, pass resume=False, or give --no-resume on the shell"
             )
-        self.state.load({k: v for k, v in arrays.items() if k in self.state.arrays()})
-        self.state.reverse = bool(meta["reverse"])
+        names = self.scheme.state()[0]
+        self.scheme.load_state({k: v for k, v in arrays.items() if k in names}, meta)
         for name in self.records:
             self.records[name] = list(np.atleast_1d(arrays.get(f"record_{name}", [])))
         for key, values in arrays.items():
