@@ -47,3 +47,17 @@ def test_extension_fills_neighbours_with_the_mean_of_known_cells():
     out = extend_into_empty(field, known, np.ones((5, 5), bool), layers=1)
     assert out[1, 2] == 4.0 and out[2, 4] == 2.0 and out[1, 3] == 2.0
     assert out[0, 0] == 0.0  # beyond one layer nothing is set
+
+
+@pytest.mark.parametrize("shape", [(9, 7), (6, 8, 5)])
+@pytest.mark.parametrize("layers", [1, 2, 4])
+def test_extend_into_empty_matches_its_numpy_twin(shape, layers):
+    from blendxr.ade import reference
+
+    rng = np.random.default_rng(len(shape) * 10 + layers)
+    field = rng.normal(size=shape)
+    known = rng.random(shape) < 0.2
+    allowed = rng.random(shape) < 0.8
+    got = extend_into_empty(field, known, allowed, layers=layers)
+    want = reference.extend_into_empty(field, known, allowed, layers=layers)
+    np.testing.assert_array_equal(got, want)

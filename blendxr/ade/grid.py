@@ -163,6 +163,77 @@ def interpolate_into(values: np.ndarray, maps: tuple, out: np.ndarray) -> np.nda
     return out
 
 
+@njit(parallel=True, cache=True)
+def _trilinear_fields(src, l0, w0, l1, w1, l2, w2, lows, highs, keep, out):
+    n_fields = src.shape[0]
+    for i in prange(l0.size):
+        a, wa = l0[i], w0[i]
+        for j in range(l1.size):
+            b, wb = l1[j], w1[j]
+            for k in range(l2.size):
+                c, wc = l2[k], w2[k]
+                inside = keep[i, j, k] != 0
+                for f in range(n_fields):
+                    s = src[f]
+                    p00 = s[a, b, c] + wc * (s[a, b, c + 1] - s[a, b, c])
+                    p01 = s[a, b + 1, c] + wc * (s[a, b + 1, c + 1] - s[a, b + 1, c])
+                    p10 = s[a + 1, b, c] + wc * (s[a + 1, b, c + 1] - s[a + 1, b, c])
+                    p11 = s[a + 1, b + 1, c] + wc * (s[a + 1, b + 1, c + 1] - s[a + 1, b + 1, c])
+                    lo = p00 + wb * (p01 - p00)
+                    hi = p10 + wb * (p11 - p10)
+                    value = min(max(lo + wa * (hi - lo), lows[f]), highs[f])
+                    out[f, i, j, k] = value if inside else 0.0
+
+
+@njit(parallel=True, cache=True)
+def _bilinear_fields(src, l0, w0, l1, w1, lows, highs, keep, out):
+    n_fields = src.shape[0]
+    for i in prange(l0.size):
+        a, wa = l0[i], w0[i]
+        for j in range(l1.size):
+            b, wb = l1[j], w1[j]
+            inside = keep[i, j] != 0
+            for f in range(n_fields):
+                s = src[f]
+                lo = s[a, b] + wb * (s[a, b + 1] - s[a, b])
+                hi = s[a + 1, b] + wb * (s[a + 1, b + 1] - s[a + 1, b])
+                value = min(max(lo + wa * (hi - lo), lows[f]), highs[f])
+                out[f, i, j] = value if inside else 0.0
+
+
+def interpolate_fields_into(
+    fields: np.ndarray, maps: tuple, keep: np.ndarray, bounds, out: np.ndarray
+) -> np.ndarray:
+    """Several fields interpolated in one pass, clipped, zero outside ``keep``.
+
+    The same separable linear interpolation as :func:`interpolate_into` per field (same
+    order of operations), with each target cell's weights found once for all fields;
+    ``out`` may be float32 (the values are rounded once, at the end).
+
+    Parameters
+    ----------
+    fields : ndarray, shape (n_fields, *source shape)
+        Source fields on the flow grid.
+    maps : tuple of AxisMap
+        One per axis.
+    keep : ndarray of uint8 or bool, target shape
+        Cells that receive values; the others get 0.
+    bounds : sequence of (low, high)
+        Per field, the range the interpolated value is clipped to.
+    out : ndarray, shape (n_fields, *target shape)
+        Receives the fields.
+    """
+    src = np.ascontiguousarray(fields, dtype=np.float64)
+    lows = np.array([b[0] for b in bounds], float)
+    highs = np.array([b[1] for b in bounds], float)
+    args = []
+    for m in maps:
+        args += [m.lower, m.weight]
+    kernel = _trilinear_fields if src.ndim == 4 else _bilinear_fields
+    kernel(src, *args, lows, highs, keep.view(np.uint8) if keep.dtype == bool else keep, out)
+    return out
+
+
 def inside_mask(maps: tuple) -> np.ndarray:
     """Target cells whose centre lies within the source grid's extent."""
     mask = np.ones([len(m.inside) for m in maps], bool)
@@ -173,13 +244,40 @@ def inside_mask(maps: tuple) -> np.ndarray:
     return mask
 
 
+@njit(parallel=True, cache=True)
+def _extend_layer(out, known, allowed, dims, strides, out_new, known_new):
+    """One layer of :func:`extend_into_empty` on flat arrays (double-buffered)."""
+    ndim = dims.size
+    for p in prange(out.size):
+        out_new[p] = out[p]
+        known_new[p] = known[p]
+        if known[p] != 0 or allowed[p] == 0:
+            continue
+        total = 0.0
+        count = 0.0
+        for axis in range(ndim):
+            step = strides[axis]
+            index = (p // step) % dims[axis]
+            # the same neighbours in the same order as the NumPy twin's rolls
+            if index > 0 and known[p - step] != 0:
+                total += out[p - step]
+                count += 1.0
+            if index < dims[axis] - 1 and known[p + step] != 0:
+                total += out[p + step]
+                count += 1.0
+        if count > 0.0:
+            out_new[p] = total / count
+            known_new[p] = 1
+
+
 def extend_into_empty(field: np.ndarray, known: np.ndarray, allowed: np.ndarray, layers: int = 2):
     """Extend a field from known cells into neighbouring unknown cells, layer by layer.
 
     Each new layer takes the mean of its known face neighbours. Velocities are extended a
     couple of cells beyond the material so that face velocities at a free surface are
     those of the material, not half of them, and so that linear interpolation onto a finer
-    grid does not drag the surface velocity towards zero.
+    grid does not drag the surface velocity towards zero. Compiled; its NumPy twin is
+    :func:`blendxr.ade.reference.extend_into_empty`.
 
     Parameters
     ----------
@@ -190,24 +288,15 @@ def extend_into_empty(field: np.ndarray, known: np.ndarray, allowed: np.ndarray,
     layers : int
         How many cell layers to extend.
     """
-    out = np.where(known, field, 0.0)
-    known = known.copy()
+    shape = np.shape(field)
+    out = np.ascontiguousarray(np.where(known, field, 0.0), dtype=np.float64).reshape(-1)
+    mask = np.ascontiguousarray(known, dtype=np.uint8).reshape(-1)
+    allowed = np.ascontiguousarray(allowed, dtype=np.uint8).reshape(-1)
+    dims = np.asarray(shape, np.int64)
+    strides = np.asarray([int(np.prod(shape[axis + 1 :])) for axis in range(len(shape))], np.int64)
+    out_new, mask_new = np.empty_like(out), np.empty_like(mask)
     for _ in range(layers):
-        total = np.zeros_like(out)
-        count = np.zeros(out.shape)
-        for axis in range(out.ndim):
-            for shift in (1, -1):
-                rolled_v = np.roll(out, shift, axis=axis)
-                rolled_k = np.roll(known, shift, axis=axis)
-                # no wrap-around: the rolled-in edge slice is not a neighbour
-                edge = [slice(None)] * out.ndim
-                edge[axis] = 0 if shift == 1 else -1
-                rolled_k[tuple(edge)] = False
-                total += np.where(rolled_k, rolled_v, 0.0)
-                count += rolled_k
-        new = (~known) & allowed & (count > 0)
-        if not new.any():
-            break
-        out[new] = total[new] / count[new]
-        known = known | new
-    return out
+        _extend_layer(out, mask, allowed, dims, strides, out_new, mask_new)
+        out, out_new = out_new, out
+        mask, mask_new = mask_new, mask
+    return out.reshape(shape)

@@ -15,6 +15,7 @@ from .kernels import FV_M_TINY, FV_MASS_MARGIN
 
 __all__ = [
     "concentration",
+    "extend_into_empty",
     "fv_step_2d",
     "fv_step_3d",
     "fv_transport_velocity",
@@ -313,3 +314,28 @@ def fv_transport_velocity(v, axis, dt, h, cap):
     """NumPy twin of :func:`blendxr.ade.kernels.fv_transport_velocity`."""
     grad = np.gradient(v, h, axis=axis)  # central inside, one-sided at the ends
     return v * np.clip(1.0 - 0.5 * dt * grad, 0.0, cap)
+
+
+def extend_into_empty(field, known, allowed, layers=2):
+    """NumPy twin of :func:`blendxr.ade.grid.extend_into_empty`."""
+    out = np.where(known, field, 0.0)
+    known = known.copy()
+    for _ in range(layers):
+        total = np.zeros_like(out)
+        count = np.zeros(out.shape)
+        for axis in range(out.ndim):
+            for shift in (1, -1):
+                rolled_v = np.roll(out, shift, axis=axis)
+                rolled_k = np.roll(known, shift, axis=axis)
+                # no wrap-around: the rolled-in edge slice is not a neighbour
+                edge = [slice(None)] * out.ndim
+                edge[axis] = 0 if shift == 1 else -1
+                rolled_k[tuple(edge)] = False
+                total += np.where(rolled_k, rolled_v, 0.0)
+                count += rolled_k
+        new = (~known) & allowed & (count > 0)
+        if not new.any():
+            break
+        out[new] = total[new] / count[new]
+        known = known | new
+    return out
