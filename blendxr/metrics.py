@@ -147,23 +147,48 @@ def _dims_list(dims, c, default):
     return dims
 
 
+def _moments_core(values, w, n_axes):
+    """Weighted mean and variance over the last ``n_axes`` axes of plain arrays (the
+    arithmetic of :func:`_moments`, which applies it to labelled data)."""
+    axes = tuple(range(-n_axes, 0))
+    has = w > 0
+    # Shifting by one of the values makes a uniform field give exactly zero variance (the
+    # mean of identical numbers is not always that number in floating point) and keeps
+    # the two-pass sums well conditioned.
+    with np.errstate(invalid="ignore"):
+        ref = np.where(has, values, -np.inf).max(axis=axes)
+    ref = np.where(np.isneginf(ref), 0.0, ref)
+    ref_b = np.expand_dims(ref, axes)
+    v0 = np.where(has, values - ref_b, 0.0)
+    v1 = w.sum(axis=axes)
+    v2 = (w * w).sum(axis=axes)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v1_pos = np.where(v1 > 0, v1, np.nan)
+        shift = (w * v0).sum(axis=axes) / v1_pos
+        norm = v1 - v2 / v1_pos
+        dev = v0 - np.expand_dims(shift, axes)
+        var = (w * dev**2).sum(axis=axes) / np.where(norm > 0, norm, np.nan)
+    return ref + shift, var
+
+
 def _moments(values, w, dims):
     """Weighted mean and reliability-weighted variance over ``dims``.
 
     variance = sum w (v - mean)^2 / (V1 - V2 / V1), V1 = sum w, V2 = sum w^2, which is the
-    n - 1 sample variance when every weight is 1. NaN values must carry zero weight.
+    n - 1 sample variance when every weight is 1. NaN values must carry zero weight. The
+    arithmetic is :func:`_moments_core` on the arrays (one pass of NumPy over each, not
+    a labelled operation per term); dask-backed data stay lazy.
     """
-    # Shifting by one of the values makes a uniform field give exactly zero variance (the
-    # mean of identical numbers is not always that number in floating point) and keeps
-    # the two-pass sums well conditioned.
-    ref = values.where(w > 0).max(dims).fillna(0.0)
-    v0 = (values - ref).where(w > 0, 0.0)
-    v1 = w.sum(dims)
-    v2 = (w * w).sum(dims)
-    shift = (w * v0).sum(dims) / v1.where(v1 > 0)
-    norm = v1 - v2 / v1.where(v1 > 0)
-    var = (w * (v0 - shift) ** 2).sum(dims) / norm.where(norm > 0)
-    return ref + shift, var
+    values, w = xr.broadcast(values, w)
+    return xr.apply_ufunc(
+        _moments_core,
+        values,
+        w,
+        kwargs={"n_axes": len(dims)},
+        input_core_dims=[list(dims), list(dims)],
+        output_core_dims=[[], []],
+        dask="allowed",  # the core's NumPy calls dispatch to dask's own reductions
+    )
 
 
 def _finish(result, name, long_name, units="1", **attrs):
