@@ -22,6 +22,7 @@ from .pipeline import flow_key, revolutions_to_level, run_scene, scene_flow
 from .scene import Scene, SceneError, builtin_scenes, load_scene
 from .schema import SchemaError, validate
 from .studies import calibrate_k1, read_curve
+from .sweep import sweep
 
 __all__ = [
     "__version__",
@@ -49,6 +50,7 @@ __all__ = [
     "scene_flow",
     "segregation_intensity",
     "solve_flow",
+    "sweep",
     "thief_rsd",
     "thief_samples",
     "validate",

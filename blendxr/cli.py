@@ -145,6 +145,74 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
+def _parse_vary(texts) -> dict:
+    """``--vary key=v1,v2`` (repeatable) as ``{key: [v1, v2]}``, each value parsed as
+    ``--set`` parses one."""
+    from .scene import parse_assignment
+
+    grid = {}
+    for text in texts or []:
+        key, _, values = text.partition("=")
+        if not key or not values:
+            raise ValueError(f"--vary {text!r}: give KEY=VALUE,VALUE,...")
+        grid[key.strip()] = [parse_assignment(f"{key}={v}")[1] for v in values.split(",")]
+    if not grid:
+        raise ValueError("sweep: give at least one --vary KEY=VALUE,VALUE,...")
+    return grid
+
+
+def _cmd_sweep(args) -> int:
+    import numpy as np
+
+    from .io import write_result
+    from .pipeline import check_output_folder
+    from .sweep import sweep
+
+    scene = _scene_from_args(args, {})
+    grid = _parse_vary(args.vary)
+    out = check_output_folder(args.output)
+    client = None
+    if args.scheduler:
+        from dask.distributed import Client
+
+        client = Client(args.scheduler)
+        print(f"dask scheduler {args.scheduler}; dashboard {client.dashboard_link}")
+    try:
+        result = sweep(
+            scene,
+            grid,
+            client=client,
+            store=out / "cases",
+            workers=args.workers,
+            cache=args.cache,
+            progress=not args.quiet,
+        )
+    finally:
+        if client is not None:
+            client.close()
+    write_result(result, out / "sweep.nc", scene=scene, title=result.attrs["title"])
+    a = result.attrs
+    print(
+        f"{a['cases']} cases: {a['cases_run']} run, {a['cases_from_store']} from the store, "
+        f"{a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.1f} s"
+    )
+    keys = list(grid)
+    levels = [f"N({lv:g})" for lv in result["rsd_level"].values]
+    print("  ".join([*keys, *levels, "status"]))
+    for index in np.ndindex(*result["status"].shape):
+        point = {k: result[k].values[i] for k, i in zip(keys, index, strict=True)}
+        to_level = result["revolutions_to_rsd"].values[index]
+        cells = [f"{point[k]}" for k in keys]
+        cells += ["-" if not np.isfinite(v) else f"{v:.2f}" for v in to_level]
+        status = str(result["status"].values[index])
+        if status != "ok":
+            status += f" ({result['error'].values[index]})"
+        print("  ".join([*cells, status]))
+    print(f"wrote {out / 'sweep.nc'} (cases in {out / 'cases'})")
+    failed = int((result["status"] != "ok").sum())
+    return 1 if failed else 0
+
+
 def _one_line(err: BaseException) -> str:
     """An error as one line: an OSError by its own words and file, not its errno."""
     if isinstance(err, OSError) and err.strerror:
@@ -287,6 +355,22 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_set(p)
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("sweep", help="a parameter study: every combination, on dask")
+    p.add_argument("scene")
+    p.add_argument(
+        "--vary",
+        action="append",
+        metavar="KEY=V1,V2,...",
+        help="a scene key and its values (repeatable: every combination is run)",
+    )
+    p.add_argument("--scheduler", help="address of a dask scheduler (default: a local cluster)")
+    p.add_argument("--workers", type=int, help="processes of the local cluster (default: cores)")
+    p.add_argument("-o", "--output", default=".", help="output folder (default: .)")
+    p.add_argument("--cache", help="folder of cached flows")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_set(p)
+    p.set_defaults(func=_cmd_sweep)
 
     p = sub.add_parser("validate", help="check netCDF files against the blendxr schemas")
     p.add_argument("files", nargs="+")
