@@ -1,0 +1,146 @@
+"""The paper's parametric study (§6, Figs. 13-14) as one sweep.
+
+60 % fill, side-side loading (``tote-60-side-side``), one parameter varied at a time
+about the paper's values (k1 = 0.01, k2 = 1.9 k1, wall friction 0.324, internal friction
+angle 27.1 deg):
+
+- Fig. 13a, ``mixing.k1``: 0, 0.005, 0.01, 0.02;
+- Fig. 13b, ``mixing.k2``: 0, 0.019 (the default 1.9 k1), 0.04;
+- Fig. 14a, ``material.wall_friction``: 0.2, 0.324, 0.5;
+- Fig. 14b, ``material.friction_angle_deg``: 22, 27.1, 32.
+
+The k1 and k2 cases share one flow; each wall friction and friction angle needs its own
+(five flows in all). ``--size small`` (default) runs the flows at a 20 mm cell with E/100 and
+12 phase bins, mixed on 60 ADE cells for 30 revolutions (about 15 minutes on 2 cores);
+``--size paper`` runs the shipped scene (7.5 mm, E/10, 36 bins, 100^3 cells: five flows of
+about 25 minutes each, then the mixing). Cases run through ``bx.sweep`` on a LocalCluster of
+two one-thread workers, with their store in ``runs/paper_parametric-<size>/cases`` (a killed
+run resumes there).
+
+Writes ``benchmarks/results/paper_parametric_<size>.{nc,json,md,png}``: the RSD curves of
+each panel, the revolutions to RSD 0.2 / 0.1 / 0.05 and the final RSD of every case.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+
+from _common import REPO, RESULTS, echo, machine, machine_line, table, write_atomic, write_json  # noqa: E402
+
+import blendxr as bx  # noqa: E402
+
+BASE = "tote-60-side-side"
+SIZES = {
+    "small": {
+        "flow.cell": 0.02,
+        "solver.stiffness_scaling": 100.0,
+        "flow.phases": 12,
+        "numerics.cells": 60,
+        "mixing.revolutions": 30,
+    },
+    "paper": {},
+}
+PANELS = {
+    "13a": ("mixing.k1", [0.0, 0.005, 0.01, 0.02]),
+    "13b": ("mixing.k2", [0.0, 0.019, 0.04]),
+    "14a": ("material.wall_friction", [0.2, 0.324, 0.5]),
+    "14b": ("material.friction_angle_deg", [22.0, 27.1, 32.0]),
+}
+#: the paper's values of the varied keys (a case sets only the key of its panel)
+PAPER = {"mixing.k1": 0.01, "mixing.k2": 0.019, "material.wall_friction": 0.324,
+         "material.friction_angle_deg": 27.1}  # fmt: skip
+
+
+def cases() -> list[dict]:
+    """One case per panel value; the paper's values appear once (shared by the panels)."""
+    out = [{}]
+    for key, values in PANELS.values():
+        out += [{key: v} for v in values if not math.isclose(v, PAPER[key])]
+    return out
+
+
+def panel_cases(key: str, values: list) -> list[dict]:
+    return [{} if math.isclose(v, PAPER[key]) else {key: v} for v in values]
+
+
+def figure(result, size: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from blendxr.plot import save_figure
+    from blendxr.sweep import case_id
+
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7), sharey=True)
+    ids = list(result["case"].values)
+    for ax, (panel, (key, values)) in zip(axes.flat, PANELS.items(), strict=True):
+        for value, case in zip(values, panel_cases(key, values), strict=True):
+            row = result.isel(case=ids.index(case_id(case)))
+            ax.semilogy(result["revolution"], row["rsd"], label=f"{key.split('.')[-1]} = {value:g}")
+        ax.set_title(f"Fig. {panel}: {key}", fontsize=10)
+        ax.set_xlabel("revolutions")
+        ax.set_ylabel("RSD")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"60 % fill, side-side loading ({size} size)")
+    fig.tight_layout()
+    return save_figure(fig, RESULTS / f"paper_parametric_{size}.png")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", choices=list(SIZES), default="small")
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    info = machine()
+    echo(f"machine: {machine_line(info)}")
+    base = bx.load_scene(BASE, SIZES[args.size])
+    store = REPO / "runs" / f"paper_parametric-{args.size}" / "cases"
+    cache = os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache")
+    result = bx.sweep(base, cases(), store=store, cache=cache, workers=args.workers)
+    from blendxr.io import write_result
+    from blendxr.sweep import case_id
+
+    write_result(result, RESULTS / f"paper_parametric_{args.size}.nc", scene=base,
+                 title="the paper's parametric study (Figs. 13-14)")  # fmt: skip
+    ids = list(result["case"].values)
+    rows, payload = [], []
+    for panel, (key, values) in PANELS.items():
+        for value, case in zip(values, panel_cases(key, values), strict=True):
+            row = result.isel(case=ids.index(case_id(case)))
+            to = [float(v) for v in row["revolutions_to_rsd"].values]
+            rows.append([panel, key, value, *("-" if math.isnan(v) else f"{v:.1f}" for v in to),
+                         f"{float(row['final_rsd']):.3f}", str(row["status"].values)])  # fmt: skip
+            payload.append({"panel": panel, "key": key, "value": value, "to_rsd": to,
+                            "final_rsd": float(row["final_rsd"]),
+                            "status": str(row["status"].values)})  # fmt: skip
+    a = result.attrs
+    text = "\n".join(
+        [
+            f"# The paper's parametric study (Figs. 13-14), {args.size} size",
+            "",
+            f"Machine: {machine_line(info)}",
+            f"Sweep: {a['cases']} cases ({a['cases_run']} run, {a['cases_from_store']} from the "
+            f"store), {a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.0f} s.",
+            "",
+            table(
+                ["fig.", "key", "value", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "status"], rows
+            ),  # fmt: skip
+            "",
+        ]
+    )
+    write_json(f"paper_parametric_{args.size}", {"machine": info, "sweep": dict(a),
+                                                 "cases": payload})  # fmt: skip
+    write_atomic(RESULTS / f"paper_parametric_{args.size}.md", text)
+    figure(result, args.size)
+    echo(text)
+
+
+if __name__ == "__main__":
+    main()
