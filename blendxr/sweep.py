@@ -105,13 +105,25 @@ def _limit_threads(threads: int) -> None:
     numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
 
+@contextlib.contextmanager
+def _in_task(threads: int):
+    """A case's own reads in its own thread: lazy data a task computes (the flow file's
+    phases, its validation) would otherwise go back to the cluster as sub-tasks, and
+    cases waiting on their sub-tasks while holding every worker's thread never finish."""
+    import dask
+
+    _limit_threads(threads)
+    with dask.config.set(scheduler="synchronous"):
+        yield
+
+
 def _flow_task(scene_toml: str, cache: str | None, threads: int) -> dict:
     """Solve (or find in the cache) one flow; what the mixing tasks need to open it."""
-    _limit_threads(threads)
     scene = load_scene(scene_toml)
     started = time.perf_counter()
     try:
-        flow, source = pipeline.scene_flow(scene, cache=cache, progress=False)
+        with _in_task(threads):
+            flow, source = pipeline.scene_flow(scene, cache=cache, progress=False)
     except Exception as exc:  # recorded with every case that needed this flow
         return {"error": f"flow: {type(exc).__name__}: {exc}", "trace": traceback.format_exc()}
     info = {
@@ -129,7 +141,6 @@ def _flow_task(scene_toml: str, cache: str | None, threads: int) -> dict:
 
 def _mix_task(scene_toml: str, values: dict, flow: dict, store: str, threads: int) -> dict:
     """Mix one case through its flow and write it to the store; never raises."""
-    _limit_threads(threads)
     name = case_id(values)
     started = time.perf_counter()
     try:
@@ -138,13 +149,14 @@ def _mix_task(scene_toml: str, values: dict, flow: dict, store: str, threads: in
         from . import mix
 
         scene = load_scene(scene_toml, values)
-        if flow["kind"] in ("solver", "file"):
-            source = flow["path"]
-        else:  # an analytic flow: made here, cheaply, not shipped between processes
-            source, _ = pipeline.scene_flow(scene, progress=False)
-        mixed = mix(source, scene, progress=False)
-        result = _case_dataset(mixed, values, flow, time.perf_counter() - started)
-        _write_case(result, Path(store) / f"case-{name}.nc", scene)
+        with _in_task(threads):
+            if flow["kind"] in ("solver", "file"):
+                source = flow["path"]
+            else:  # an analytic flow: made here, cheaply, not shipped between processes
+                source, _ = pipeline.scene_flow(scene, progress=False)
+            mixed = mix(source, scene, progress=False)
+            result = _case_dataset(mixed, values, flow, time.perf_counter() - started)
+            _write_case(result, Path(store) / f"case-{name}.nc", scene)
         return {"id": name, "status": "ok"}
     except Exception as exc:
         record = {

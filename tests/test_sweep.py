@@ -131,3 +131,23 @@ def test_shell_sweep_on_its_own_local_cluster(tmp_path, capsys, monkeypatch):
         assert (ds["status"] == "ok").all()
     # a bad --vary is one line and status 2
     assert main(["sweep", "drum-2d-mpm", "--vary", "mixing.k1"]) == 2
+
+
+def test_cases_reading_a_lazy_flow_file_finish(client, tmp_path):
+    """More cases than workers, each reading a many-phase flow file lazily: a case's
+    reads stay in its own thread (they once went back to the cluster as sub-tasks and
+    the cases holding every worker's thread waited on them for ever)."""
+    path = tmp_path / "swirl.nc"
+    bx.write_dataset(bx.flows.swirl(ndim=2, cells=16, n_phases=24, rpm=10.0, size=0.2), path)
+    base = bx.load_scene(
+        "swirl-2d",
+        {"flow.source": "file", "flow.path": str(path), "mixing.revolutions": 0.5,
+         "numerics.cells": 24, "mixing.snapshots": [0, 0.5]},
+    )  # fmt: skip
+    vary = {"mixing.k1": [0.0, 0.01, 0.02, 0.05, 0.1]}
+    result = bx.sweep(base, vary, client=client, store=tmp_path / "s", cache=tmp_path / "c")
+    assert (result["status"] == "ok").all()
+    assert result.attrs["flows_solved"] == 0
+    # more diffusion mixes more
+    final = result["final_rsd"].values
+    assert np.all(np.diff(final) < 0), final
