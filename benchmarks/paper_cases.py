@@ -8,6 +8,13 @@ floors, like the paper's Fig. 12) and ``paper_cases_drum.png`` (the drum's segre
 intensity with its floor, like Fig. 7). The committed per-case ``report.json`` and
 pictures are copied beside them under ``results/paper/NAME/``.
 
+``--sweep SIZE`` runs the four Tote cases instead as one ``bx.sweep`` (fill x loading
+about ``tote-40-top-bottom``, a LocalCluster of two one-thread workers, its store in
+``runs/paper_cases_sweep-SIZE/``): ``small`` at a 20 mm flow cell, E/100, 12 phase bins,
+60 ADE cells (minutes), ``paper`` at the scenes' own resolution (the flows of the runs
+above, from the cache). It writes ``paper_cases_sweep_SIZE.{md,png}`` (the four RSD
+curves with their random-mixture floors, like Fig. 12).
+
 Run: ``python benchmarks/paper_cases.py [--case NAME ...] [--reuse DIR]``. ``--reuse DIR``
 reads finished runs from ``DIR/NAME/`` (``mixing.nc`` and ``report.json`` written by
 ``blendxr run NAME -o DIR/NAME``) instead of running them again. A Tote case at the
@@ -165,13 +172,95 @@ def figures(cases: dict) -> None:
         save_figure(fig, RESULTS / f"{NAME}_drum.png")
 
 
+#: the four Tote cases as one sweep about tote-40-top-bottom
+SWEEP = {"fill.fraction": [0.4, 0.6], "mixing.loading": ["top-bottom", "side-side"]}
+SWEEP_SIZES = {
+    "small": {
+        "flow.cell": 0.02,
+        "solver.stiffness_scaling": 100.0,
+        "flow.phases": 12,
+        "numerics.cells": 60,
+        "mixing.revolutions": 40,
+    },
+    "paper": {},
+}
+
+
+def tote_sweep(size: str, info: dict) -> None:
+    """The four Tote cases as one bx.sweep; table and Fig. 12-like plot."""
+    import math
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import xarray as xr
+
+    import blendxr as bx
+    from blendxr.plot import save_figure
+    from blendxr.sweep import case_id
+
+    base = bx.load_scene("tote-40-top-bottom", SWEEP_SIZES[size])
+    cache = os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache")
+    store = REPO / "runs" / f"paper_cases_sweep-{size}"
+    result = bx.sweep(base, SWEEP, store=store, cache=cache, workers=2)
+    rows = []
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for fill in SWEEP["fill.fraction"]:
+        for loading in SWEEP["mixing.loading"]:
+            case = result.sel({"fill.fraction": fill, "mixing.loading": loading})
+            label = f"{fill:.0%} {loading}"
+            (line,) = ax.semilogy(result["revolution"], case["rsd"], lw=1.5, label=label)
+            one = store / f"case-{case_id({'fill.fraction': fill, 'mixing.loading': loading})}.nc"
+            with xr.open_dataset(one) as ds:
+                floor = float(ds.attrs.get("random_mixture_rsd", math.nan))
+            if math.isfinite(floor):
+                ax.axhline(floor, ls="--", lw=0.8, color=line.get_color())
+            to = [float(v) for v in case["revolutions_to_rsd"].values]
+            rows.append([label, *("not reached" if math.isnan(v) else f"{v:.1f}" for v in to),
+                         f"{float(case['final_rsd']):.3f}", f"{float(case['mix_wall_time']):.0f}",
+                         str(case["status"].values)])  # fmt: skip
+    ax.axhline(0.05, ls=":", color="k", lw=1, label="RSD 5 %")
+    ax.set_xlabel("revolutions")
+    ax.set_ylabel("RSD")
+    ax.set_title(f"Tote, 10 rpm, k1 = 0.01, one sweep ({size}; dashed: random mixture)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, RESULTS / f"{NAME}_sweep_{size}.png")
+    a = result.attrs
+    text = "\n".join(
+        [
+            f"# The four Tote cases as one sweep ({size} size)",
+            "",
+            f"Machine: {machine_line(info)}",
+            f"Sweep: {a['cases']} cases ({a['cases_run']} run, {a['cases_from_store']} from the "
+            f"store), {a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.0f} s.",
+            "",
+            table(
+                ["case", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "mixing s", "status"], rows
+            ),  # fmt: skip
+            "",
+        ]
+    )
+    from _common import write_atomic
+
+    write_atomic(RESULTS / f"{NAME}_sweep_{size}.md", text)
+    echo(text)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", action="append", choices=CASES)
     parser.add_argument("--reuse", type=Path, help="read finished runs from DIR/NAME/")
+    parser.add_argument("--sweep", choices=list(SWEEP_SIZES),
+                        help="run the four Tote cases as one bx.sweep at this size")  # fmt: skip
     args = parser.parse_args()
     info = machine()
     echo(f"machine: {machine_line(info)}")
+    if args.sweep:
+        tote_sweep(args.sweep, info)
+        return
     for case in args.case or CASES:
         out = args.reuse / case if args.reuse else _run(case, REPO / "runs" / "paper")
         result = _collect(case, out)
