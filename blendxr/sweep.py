@@ -326,7 +326,7 @@ def sweep(
         try:
             scenes[case_id(values)] = load_scene(base, values)
         except SceneError as err:
-            raise SceneError([f"sweep case {values}: {err}"]) from None
+            raise SceneError([f"sweep case {values}: {fault}" for fault in err.faults]) from None
     store = Path(store) if store is not None else _default_store(base, cases, cache)
     store.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
