@@ -12,7 +12,14 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["AdeGrid", "AxisMap", "interpolate", "interpolate_into", "extend_into_empty"]
+__all__ = [
+    "AdeGrid",
+    "AxisMap",
+    "extend_into_empty",
+    "interpolate",
+    "interpolate_fields_into",
+    "interpolate_into",
+]
 
 
 @dataclass(frozen=True)
@@ -125,45 +132,6 @@ def interpolate(values: np.ndarray, maps: tuple) -> np.ndarray:
 
 
 @njit(parallel=True, cache=True)
-def _bilinear(src, l0, w0, l1, w1, out):
-    for i in prange(l0.size):
-        a, wa = l0[i], w0[i]
-        for j in range(l1.size):
-            b, wb = l1[j], w1[j]
-            lo = src[a, b] + wb * (src[a, b + 1] - src[a, b])
-            hi = src[a + 1, b] + wb * (src[a + 1, b + 1] - src[a + 1, b])
-            out[i, j] = lo + wa * (hi - lo)
-
-
-@njit(parallel=True, cache=True)
-def _trilinear(src, l0, w0, l1, w1, l2, w2, out):
-    for i in prange(l0.size):
-        a, wa = l0[i], w0[i]
-        for j in range(l1.size):
-            b, wb = l1[j], w1[j]
-            for k in range(l2.size):
-                c, wc = l2[k], w2[k]
-                p00 = src[a, b, c] + wc * (src[a, b, c + 1] - src[a, b, c])
-                p01 = src[a, b + 1, c] + wc * (src[a, b + 1, c + 1] - src[a, b + 1, c])
-                p10 = src[a + 1, b, c] + wc * (src[a + 1, b, c + 1] - src[a + 1, b, c])
-                p11 = src[a + 1, b + 1, c] + wc * (src[a + 1, b + 1, c + 1] - src[a + 1, b + 1, c])
-                lo = p00 + wb * (p01 - p00)
-                hi = p10 + wb * (p11 - p10)
-                out[i, j, k] = lo + wa * (hi - lo)
-
-
-def interpolate_into(values: np.ndarray, maps: tuple, out: np.ndarray) -> np.ndarray:
-    """Compiled separable linear interpolation into ``out`` (same result as
-    :func:`interpolate`, its NumPy twin, in the same order of operations per axis)."""
-    src = np.ascontiguousarray(values, dtype=np.float64)
-    args = []
-    for m in maps:
-        args += [m.lower, m.weight]
-    (_trilinear if src.ndim == 3 else _bilinear)(src, *args, out)
-    return out
-
-
-@njit(parallel=True, cache=True)
 def _trilinear_fields(src, l0, w0, l1, w1, l2, w2, lows, highs, keep, out):
     n_fields = src.shape[0]
     for i in prange(l0.size):
@@ -206,7 +174,7 @@ def interpolate_fields_into(
 ) -> np.ndarray:
     """Several fields interpolated in one pass, clipped, zero outside ``keep``.
 
-    The same separable linear interpolation as :func:`interpolate_into` per field (same
+    The same separable linear interpolation as :func:`interpolate` per field (same
     order of operations), with each target cell's weights found once for all fields;
     ``out`` may be float32 (the values are rounded once, at the end).
 
@@ -231,6 +199,15 @@ def interpolate_fields_into(
         args += [m.lower, m.weight]
     kernel = _trilinear_fields if src.ndim == 4 else _bilinear_fields
     kernel(src, *args, lows, highs, keep.view(np.uint8) if keep.dtype == bool else keep, out)
+    return out
+
+
+def interpolate_into(values: np.ndarray, maps: tuple, out: np.ndarray) -> np.ndarray:
+    """Compiled separable linear interpolation of one field into ``out`` (the same result
+    as :func:`interpolate`, its NumPy twin, in the same order of operations per axis)."""
+    keep = np.ones(out.shape, np.uint8)
+    interpolate_fields_into(np.asarray(values)[None], maps, keep, [(-np.inf, np.inf)],
+                            out[None])  # fmt: skip
     return out
 
 

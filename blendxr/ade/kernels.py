@@ -268,12 +268,13 @@ def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, rows, dt, dx, dy, dz,
     two phases (``vel_*``, ``dif_*`` of shape (3, nx, ny, nz)); see the 2-D version.
 
     Written like the stencil (:func:`lw_apply_3d`): along each (i, j) row's material
-    range, with unsigned indices and no branch in the inner loop, so that LLVM can
-    vectorise it. Cells of the range that are not interior get coefficients too (from
-    whatever the fields hold there); the stencil never uses them.
+    range, with unsigned indices and no branch in the inner loop. (LLVM does not
+    vectorise it all the same: its 44 row views are more than its alias checks take.)
+    Cells of the range that are not interior get coefficients too (from whatever the
+    fields hold there); the stencil never uses them.
     """
     nx, ny, nz = cls.shape
-    # reciprocals once: a division per use kept the loop at about twice the time
+    # reciprocals once: the divisions were most of this loop's arithmetic
     gx, gy, gz = 0.5 / dx, 0.5 / dy, 0.5 / dz
     tx, ty, tz = dt / dx, dt / dy, dt / dz
     mx, my, mz = dt / (dx * dx), dt / (dy * dy), dt / (dz * dz)

@@ -712,8 +712,7 @@ class _Run:
                 f"checkpoint {path} belongs to a run with other settings; "
                 "remove it, pass resume=False, or give --no-resume on the shell"
             )
-        names = self.scheme.state()[0]
-        self.scheme.load_state({k: v for k, v in arrays.items() if k in names}, meta)
+        self.scheme.load_state(arrays, meta)
         for name in self.records:
             self.records[name] = list(np.atleast_1d(arrays.get(f"record_{name}", [])))
         for key, values in arrays.items():

@@ -43,8 +43,8 @@ class Scheme(ABC):
     name: ClassVar[str]
     #: the least blended fill the scheme counts as material (c is undefined below it)
     least_fill: ClassVar[float]
-    #: what :meth:`species` sums, for the result's attributes
-    conserved: ClassVar[str]
+    #: the prognostic arrays a checkpoint holds (attributes of the scheme)
+    state_fields: ClassVar[tuple[str, ...]]
 
     def __init__(self, grid: AdeGrid, vessel: np.ndarray, with_diffusion: bool):
         self.grid = grid
@@ -52,19 +52,32 @@ class Scheme(ABC):
         self.vessel = vessel
         self.with_diffusion = with_diffusion
         self._zeros: np.ndarray | None = None
+        self._fields = None  # (index of a, index of b, w) of the prepared flow
+        self._dt = None  # the dt the per-cell data were prepared for
 
     # --- state ---------------------------------------------------------------
     @abstractmethod
     def initialise(self, fill: np.ndarray, c0: np.ndarray) -> None:
         """Set the state from the flow's fill at t = 0 and the initial colour ``c0``."""
 
-    @abstractmethod
     def state(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-        """The arrays and scalars a checkpoint must hold to resume bit-identically."""
+        """The arrays (:attr:`state_fields`) and scalars a checkpoint must hold to resume
+        bit-identically."""
+        return {name: getattr(self, name) for name in self.state_fields}, self.state_meta()
 
-    @abstractmethod
+    def state_meta(self) -> dict[str, float]:
+        """Scalars of the state besides its arrays (none by default)."""
+        return {}
+
     def load_state(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
         """Restore what :meth:`state` returned."""
+        for name in self.state_fields:
+            getattr(self, name)[...] = arrays[name]
+        self.load_meta(meta)
+
+    def load_meta(self, meta: dict) -> None:
+        """Restore what :meth:`state_meta` returned (nothing by default)."""
+        return None
 
     # --- per phase pair, per refresh, per step -------------------------------
     @abstractmethod
@@ -77,12 +90,30 @@ class Scheme(ABC):
         cannot be stepped at that dt."""
         return 0
 
-    @abstractmethod
     def prepare(self, a: PreparedPhase, b: PreparedPhase, w: float, dt: float,
                 limit: float) -> None:  # fmt: skip
         """Make the per-cell data of the flow at weight ``w`` between ``a`` and ``b``
         (piecewise constant over the steps that follow) for steps of ``dt``; ``limit``
-        is the pair's :meth:`max_dt`."""
+        is the pair's :meth:`max_dt`. Work is redone only for what changed: the blended
+        fields when the phases or the weight change, the step's data when dt does too."""
+        w = 0.0 if a is b else w
+        fields = (a.index, b.index, w)
+        changed = fields != self._fields
+        if changed:
+            self.blend_fields(a, b, w)
+            self._fields = fields
+        if changed or dt != self._dt:
+            self.prepare_step(a, b, w, dt, limit)
+            self._dt = dt
+
+    @abstractmethod
+    def blend_fields(self, a: PreparedPhase, b: PreparedPhase, w: float) -> None:
+        """What the scheme keeps of the flow at weight ``w`` (independent of dt)."""
+
+    @abstractmethod
+    def prepare_step(self, a: PreparedPhase, b: PreparedPhase, w: float, dt: float,
+                     limit: float) -> None:  # fmt: skip
+        """The per-cell data of a step of ``dt`` (after :meth:`blend_fields`)."""
 
     @abstractmethod
     def step(self) -> None:
@@ -100,7 +131,7 @@ class Scheme(ABC):
 
     @abstractmethod
     def species(self, c: np.ndarray, weight: np.ndarray) -> float:
-        """The species content the scheme carries, in cell volumes (:attr:`conserved`)."""
+        """The species content the scheme carries, in cell volumes."""
 
     def fill_mismatch(self, fill: np.ndarray) -> float:
         """How far the carried material is from the flow's fill (0: the scheme carries

@@ -33,7 +33,7 @@ class FiniteVolume(Scheme):
 
     name = "finite-volume"
     least_fill = M_MIN
-    conserved = "sum of q = m c (conserved to round-off)"
+    state_fields = ("m", "q")
 
     def __init__(self, grid, vessel, with_diffusion):
         super().__init__(grid, vessel, with_diffusion)
@@ -48,9 +48,8 @@ class FiniteVolume(Scheme):
         # the velocities advanced half a step along their own axes
         self.transport = tuple(np.zeros(shape) for _ in range(self.ndim))
         self.dif = np.zeros((self.ndim, *shape)) if with_diffusion else None
-        self._fields = None
-        self._dt = None
-        self.dt = 0.0
+        # the step's diffusivity arguments, made once (zeros without diffusion)
+        self._dif_args = tuple(self.dif if self.dif is not None else self.zero_stack())
         self.n_sub = 0
         self._active = None
 
@@ -59,12 +58,10 @@ class FiniteVolume(Scheme):
         self.m[...] = np.where(self.vessel, fill, 0.0)
         self.q[...] = self.m * c0
 
-    def state(self):
-        return {"m": self.m, "q": self.q}, {"reverse": int(self.reverse)}
+    def state_meta(self):
+        return {"reverse": int(self.reverse)}
 
-    def load_state(self, arrays, meta):
-        self.m[...] = arrays["m"]
-        self.q[...] = arrays["q"]
+    def load_meta(self, meta):
         self.reverse = bool(meta["reverse"])
 
     # --- per phase pair, per refresh, per step -------------------------------
@@ -75,7 +72,6 @@ class FiniteVolume(Scheme):
 
     def begin_interval(self, a, b, dt):
         """Diffusion sub-steps of one step, refused above :data:`MAX_DIFFUSION_SUBSTEPS`."""
-        self.dt = dt
         if not self.with_diffusion:
             self.n_sub = 0
             return 0
@@ -92,31 +88,25 @@ class FiniteVolume(Scheme):
         self.n_sub = n_sub
         return n_sub
 
-    def prepare(self, a, b, w, dt, limit):
-        w = 0.0 if a is b else w
-        fields = (a.index, b.index, w)
-        changed = fields != self._fields
-        if changed:
-            kernels.fv_support(a.fill.reshape(-1), b.fill.reshape(-1), w,
-                               self.vessel.reshape(-1), SUPPORT_FILL,
-                               self.support.reshape(-1))  # fmt: skip
-            if self.dif is not None:
-                kernels.lerp_into(self.dif.reshape(-1), a.dif.reshape(-1), b.dif.reshape(-1), w)
-            self._fields = fields
-        if changed or dt != self._dt:
-            # face Courant numbers may grow by limit/dt at most: still within the limit
-            cap = limit / dt if math.isfinite(limit) else 1.0
-            for axis, out in enumerate(self.transport):
-                kernels.fv_transport_velocity(a.vel[axis], out, axis, dt, self.grid.spacing[axis],
-                                              cap, v_b=b.vel[axis], w=w)  # fmt: skip
-            self._dt = dt
-        self.dt = dt
+    def blend_fields(self, a, b, w):
+        kernels.fv_support(a.fill.reshape(-1), b.fill.reshape(-1), w,
+                           self.vessel.reshape(-1), SUPPORT_FILL,
+                           self.support.reshape(-1))  # fmt: skip
+        if self.dif is not None:
+            kernels.lerp_into(self.dif.reshape(-1), a.dif.reshape(-1), b.dif.reshape(-1), w)
+
+    def prepare_step(self, a, b, w, dt, limit):
+        # face Courant numbers may grow by limit/dt at most: still within the limit
+        cap = limit / dt if math.isfinite(limit) else 1.0
+        for axis, out in enumerate(self.transport):
+            kernels.fv_transport_velocity(a.vel[axis], out, axis, dt, self.grid.spacing[axis],
+                                          cap, v_b=b.vel[axis], w=w)  # fmt: skip
 
     def step(self):
-        dif = tuple(self.dif) if self.dif is not None else tuple(self.zero_stack())
         step = kernels.fv_step_3d if self.ndim == 3 else kernels.fv_step_2d
-        step(self.m, self.q, self.m_next, self.q_next, self.work, *self.transport, *dif,
-             self.support, self.dt, *self.grid.spacing, self.reverse, self.n_sub)  # fmt: skip
+        step(self.m, self.q, self.m_next, self.q_next, self.work, *self.transport,
+             *self._dif_args, self.support, self._dt, *self.grid.spacing, self.reverse,
+             self.n_sub)  # fmt: skip
         self.m, self.m_next = self.m_next, self.m
         self.q, self.q_next = self.q_next, self.q
         self.reverse = not self.reverse

@@ -22,7 +22,7 @@ class LaxWendroff(Scheme):
 
     name = "lax-wendroff"
     least_fill = MATERIAL_THRESHOLD
-    conserved = "sum of c x fill over material cells (not conserved exactly: c is clipped)"
+    state_fields = ("c",)
 
     def __init__(self, grid, vessel, with_diffusion):
         super().__init__(grid, vessel, with_diffusion)
@@ -32,19 +32,11 @@ class LaxWendroff(Scheme):
         self.plan = kernels.LaxWendroffPlan(shape)
         self.fill = np.zeros(shape)
         self.material = np.zeros(shape, np.uint8)
-        self._fields = None  # (a, b, w) of the prepared fields
-        self._dt = None
         self._active = 0
 
     # --- state ---------------------------------------------------------------
     def initialise(self, fill, c0):
         self.c[...] = c0
-
-    def state(self):
-        return {"c": self.c}, {}
-
-    def load_state(self, arrays, meta):
-        self.c[...] = arrays["c"]
 
     # --- per phase pair, per refresh, per step -------------------------------
     def max_dt(self, a, b):
@@ -61,25 +53,20 @@ class LaxWendroff(Scheme):
             )  # fmt: skip
         )
 
-    def prepare(self, a, b, w, dt, limit):
-        w = 0.0 if a is b else w
-        fields = (a.index, b.index, w)
-        changed = fields != self._fields
-        if changed:
-            # the fill (material mask and surface normals) at the block's time
-            kernels.lerp_into(self.fill.reshape(-1), a.fill.reshape(-1), b.fill.reshape(-1), w)
-            np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
-            self.plan.classify(self.material)
-            self._fields = fields
-        if changed or dt != self._dt:
-            # velocity and diffusivity are blended inside the coefficient kernel
-            self.plan.coefficients_between(
-                a.vel, b.vel, self.diffusivity_of(a), self.diffusivity_of(b), w, dt,
-                self.grid.spacing,
-            )  # fmt: skip
-            np.copyto(self.c_next, self.c)  # cells the stencil skips stay equal in both
-            self._active = self.plan.interior_cells()
-            self._dt = dt
+    def blend_fields(self, a, b, w):
+        # the fill (material mask and surface normals) at the block's time
+        kernels.lerp_into(self.fill.reshape(-1), a.fill.reshape(-1), b.fill.reshape(-1), w)
+        np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
+        self.plan.classify(self.material)
+
+    def prepare_step(self, a, b, w, dt, limit):
+        # velocity and diffusivity are blended inside the coefficient kernel
+        self.plan.coefficients_between(
+            a.vel, b.vel, self.diffusivity_of(a), self.diffusivity_of(b), w, dt,
+            self.grid.spacing,
+        )  # fmt: skip
+        np.copyto(self.c_next, self.c)  # cells the stencil skips stay equal in both
+        self._active = self.plan.interior_cells()
 
     def step(self):
         self.plan.apply(self.c, self.c_next)
