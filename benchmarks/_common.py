@@ -23,6 +23,12 @@ RESULTS = HERE / "results"
 REPO = HERE.parent
 
 
+def flow_cache() -> Path:
+    """The flow cache the benchmarks share: ``$BLENDXR_CACHE``, else ``runs/cache`` in the
+    checkout (solved flows are reused across scripts and runs)."""
+    return Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
+
+
 def cpu_model() -> str:
     """The CPU model name from /proc/cpuinfo, else what the platform module reports."""
     try:
@@ -439,3 +445,20 @@ def _fmt(value) -> str:
 def echo(*args) -> None:
     print(*args, flush=True)
     sys.stdout.flush()
+
+
+def sweep_report(title: str, info: dict, result, headers: list[str], rows: list[list]) -> str:
+    """The Markdown page of a sweep benchmark: title, machine, what the sweep did, table."""
+    from blendxr.sweep import summary_line
+
+    return "\n".join(
+        [
+            f"# {title}",
+            "",
+            f"Machine: {machine_line(info)}",
+            f"Sweep: {summary_line(result)}.",
+            "",
+            table(headers, rows),
+            "",
+        ]  # fmt: skip
+    )

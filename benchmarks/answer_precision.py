@@ -37,7 +37,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import REPO, RESULTS, machine_line, run_cases, table  # noqa: E402
+from _common import REPO, RESULTS, flow_cache, machine_line, run_cases, table  # noqa: E402
 
 NAME = "answer_precision"
 LEVELS = (0.2, 0.1, 0.05)
@@ -213,10 +213,6 @@ CASES = {
 }
 
 
-def _cache() -> Path:
-    return Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
-
-
 def run_case(case: str) -> dict:
     """Flow (cached) and mixing of one case; the answer and what it cost."""
     import blendxr as bx
@@ -226,7 +222,7 @@ def run_case(case: str) -> dict:
     scene = bx.load_scene(base, {**STUDY_MIXING, **values})
     stages = pipeline.Stages()
     with stages.measure("flow"):
-        flow, source = pipeline.scene_flow(scene, cache=_cache(), progress=False)
+        flow, source = pipeline.scene_flow(scene, cache=flow_cache(), progress=False)
     with stages.measure("mixing"):
         mixed = bx.mix(flow, scene, progress=False)
     summary = pipeline.mixing_summary(mixed, LEVELS)

@@ -33,7 +33,18 @@ import json  # noqa: E402
 import shutil  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from _common import REPO, RESULTS, echo, machine, machine_line, merge_cases, table  # noqa: E402
+from _common import (  # noqa: E402
+    REPO,
+    RESULTS,
+    echo,
+    flow_cache,
+    machine,
+    machine_line,
+    merge_cases,
+    sweep_report,
+    table,
+    write_atomic,
+)
 
 NAME = "paper_cases"
 TOTE = ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom", "tote-60-side-side")
@@ -46,8 +57,7 @@ def _run(case: str, folder: Path) -> Path:
     import blendxr as bx
 
     out = folder / case
-    cache = Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
-    bx.run_scene(case, out, cache=cache, progress=False)
+    bx.run_scene(case, out, cache=flow_cache(), progress=False)
     return out
 
 
@@ -201,9 +211,8 @@ def tote_sweep(size: str, info: dict) -> None:
     from blendxr.sweep import case_id
 
     base = bx.load_scene("tote-40-top-bottom", SWEEP_SIZES[size])
-    cache = os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache")
     store = REPO / "runs" / f"paper_cases_sweep-{size}"
-    result = bx.sweep(base, SWEEP, store=store, cache=cache, workers=2)
+    result = bx.sweep(base, SWEEP, store=store, cache=flow_cache(), workers=2)
     rows = []
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for fill in SWEEP["fill.fraction"]:
@@ -228,23 +237,10 @@ def tote_sweep(size: str, info: dict) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, RESULTS / f"{NAME}_sweep_{size}.png")
-    a = result.attrs
-    text = "\n".join(
-        [
-            f"# The four Tote cases as one sweep ({size} size)",
-            "",
-            f"Machine: {machine_line(info)}",
-            f"Sweep: {a['cases']} cases ({a['cases_run']} run, {a['cases_from_store']} from the "
-            f"store), {a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.0f} s.",
-            "",
-            table(
-                ["case", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "mixing s", "status"], rows
-            ),  # fmt: skip
-            "",
-        ]
-    )
-    from _common import write_atomic
-
+    text = sweep_report(
+        f"The four Tote cases as one sweep ({size} size)", info, result,
+        ["case", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "mixing s", "status"], rows,
+    )  # fmt: skip
     write_atomic(RESULTS / f"{NAME}_sweep_{size}.md", text)
     echo(text)
 

@@ -30,7 +30,17 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 import argparse  # noqa: E402
 import math  # noqa: E402
 
-from _common import REPO, RESULTS, echo, machine, machine_line, table, write_atomic, write_json  # noqa: E402
+from _common import (  # noqa: E402
+    REPO,
+    RESULTS,
+    echo,
+    flow_cache,
+    machine,
+    machine_line,
+    sweep_report,
+    write_atomic,
+    write_json,
+)
 
 import blendxr as bx  # noqa: E402
 
@@ -102,8 +112,7 @@ def main() -> None:
     echo(f"machine: {machine_line(info)}")
     base = bx.load_scene(BASE, SIZES[args.size])
     store = REPO / "runs" / f"paper_parametric-{args.size}" / "cases"
-    cache = os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache")
-    result = bx.sweep(base, cases(), store=store, cache=cache, workers=args.workers)
+    result = bx.sweep(base, cases(), store=store, cache=flow_cache(), workers=args.workers)
     from blendxr.io import write_result
     from blendxr.sweep import case_id
 
@@ -120,22 +129,11 @@ def main() -> None:
             payload.append({"panel": panel, "key": key, "value": value, "to_rsd": to,
                             "final_rsd": float(row["final_rsd"]),
                             "status": str(row["status"].values)})  # fmt: skip
-    a = result.attrs
-    text = "\n".join(
-        [
-            f"# The paper's parametric study (Figs. 13-14), {args.size} size",
-            "",
-            f"Machine: {machine_line(info)}",
-            f"Sweep: {a['cases']} cases ({a['cases_run']} run, {a['cases_from_store']} from the "
-            f"store), {a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.0f} s.",
-            "",
-            table(
-                ["fig.", "key", "value", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "status"], rows
-            ),  # fmt: skip
-            "",
-        ]
-    )
-    write_json(f"paper_parametric_{args.size}", {"machine": info, "sweep": dict(a),
+    text = sweep_report(
+        f"The paper's parametric study (Figs. 13-14), {args.size} size", info, result,
+        ["fig.", "key", "value", "N(0.2)", "N(0.1)", "N(0.05)", "final RSD", "status"], rows,
+    )  # fmt: skip
+    write_json(f"paper_parametric_{args.size}", {"machine": info, "sweep": dict(result.attrs),
                                                  "cases": payload})  # fmt: skip
     write_atomic(RESULTS / f"paper_parametric_{args.size}.md", text)
     figure(result, args.size)

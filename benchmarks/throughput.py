@@ -48,7 +48,6 @@ import cProfile  # noqa: E402
 import math  # noqa: E402
 import pstats  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
@@ -90,12 +89,11 @@ TOTE_REVOLUTIONS = 0.25
 
 def tote_flow():
     """tote-small's flow from the flow cache (solved on the first run)."""
-    from _common import REPO
+    from _common import flow_cache
 
     from blendxr import pipeline
 
-    cache = Path(os.environ.get("BLENDXR_CACHE", REPO / "runs" / "cache"))
-    flow, _ = pipeline.scene_flow(bx.load_scene(TOTE_SCENE), cache=cache, progress=False)
+    flow, _ = pipeline.scene_flow(bx.load_scene(TOTE_SCENE), cache=flow_cache(), progress=False)
     return flow
 
 

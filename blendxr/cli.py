@@ -166,7 +166,7 @@ def _cmd_sweep(args) -> int:
 
     from .io import write_result
     from .pipeline import check_output_folder
-    from .sweep import sweep
+    from .sweep import summary_line, sweep
 
     scene = _scene_from_args(args, {})
     grid = _parse_vary(args.vary)
@@ -190,12 +190,8 @@ def _cmd_sweep(args) -> int:
     finally:
         if client is not None:
             client.close()
-    write_result(result, out / "sweep.nc", scene=scene, title=result.attrs["title"])
-    a = result.attrs
-    print(
-        f"{a['cases']} cases: {a['cases_run']} run, {a['cases_from_store']} from the store, "
-        f"{a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.1f} s"
-    )
+    write_result(result, out / "sweep.nc", scene=scene, title=f"blendxr sweep of {scene.name}")
+    print(summary_line(result))
     keys = list(grid)
     levels = [f"N({lv:g})" for lv in result["rsd_level"].values]
     print("  ".join([*keys, *levels, "status"]))

@@ -30,7 +30,7 @@ from . import pipeline
 from ._version import __version__
 from .scene import SceneError, load_scene
 
-__all__ = ["sweep", "sweep_cases"]
+__all__ = ["summary_line", "sweep", "sweep_cases"]
 
 #: RSD levels whose revolutions each case reports
 LEVELS = pipeline.RSD_LEVELS
@@ -339,24 +339,25 @@ def sweep(
     todo = [v for v in cases if case_id(v) not in done]
     ran, solved = 0, 0
     if todo:
+        groups = {case_id(v): _flow_group(scenes[case_id(v)]) for v in todo}
         folder = pipeline.cache_folder(cache) / "flows"
-        missing = {
-            key
-            for key in (_flow_group(scenes[case_id(v)]) for v in todo)
-            if scenes_flow_is_solver(key) and not (folder / f"{key}.nc").is_file()
+        solver_keys = {
+            group for name, group in groups.items() if scenes[name]["flow"]["source"] == "solver"
         }
+        missing = {key for key in solver_keys if not (folder / f"{key}.nc").is_file()}
+        base_toml = base.to_toml()
         with _cluster(client, workers, threads_per_case) as cl:
             flows, futures = {}, []
             for values in todo:
-                case_scene = scenes[case_id(values)]
-                key = _flow_group(case_scene)
+                name = case_id(values)
+                key = groups[name]
                 if key not in flows:
-                    flows[key] = cl.submit(_flow_task, case_scene.to_toml(), _str(cache),
+                    flows[key] = cl.submit(_flow_task, scenes[name].to_toml(), _str(cache),
                                            threads_per_case, pure=False)  # fmt: skip
                 futures.append(
                     cl.submit(
                         _mix_task,
-                        base.to_toml(),
+                        base_toml,
                         values,
                         flows[key],
                         str(store),
@@ -392,12 +393,18 @@ def sweep(
             "sweep_wall_time_s": time.perf_counter() - started,
             "store": str(store),
             "scene": base.to_toml(),
-            "source": f"blendxr {__version__}",
-            "Conventions": "CF-1.11",
-            "title": f"blendxr sweep of {base.name}",
         }
     )
     return result
+
+
+def summary_line(result: xr.Dataset) -> str:
+    """One line of what a sweep did: cases run and found, flows solved, wall time."""
+    a = result.attrs
+    return (
+        f"{a['cases']} cases: {a['cases_run']} run, {a['cases_from_store']} from the store, "
+        f"{a['flows_solved']} flows solved, {a['sweep_wall_time_s']:.1f} s"
+    )
 
 
 def _str(path) -> str | None:
@@ -410,10 +417,6 @@ def _flow_group(scene) -> str:
     if scene["flow"]["source"] == "solver":
         return pipeline.flow_key(scene)
     return "other:" + json.dumps(scene["flow"], sort_keys=True, default=str)
-
-
-def scenes_flow_is_solver(group: str) -> bool:
-    return not group.startswith("other:")
 
 
 def _default_store(base, cases, cache) -> Path:
