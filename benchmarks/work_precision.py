@@ -1,4 +1,4 @@
-"""Error against wall time of both ADE schemes on two problems with exact answers.
+"""Error against wall time of every ADE scheme on two problems with exact answers.
 
 Cases, each on four grids, one revolution:
 
@@ -228,13 +228,15 @@ def warm_up() -> float:
 
 def plot(results, path):
     fig, ax = plt.subplots(figsize=(7.5, 5.2), dpi=120)
-    styles = {"finite-volume": "-", "lax-wendroff": "--"}
+    styles = {"finite-volume": "-", "lax-wendroff": "--", "semi-lagrangian": ":"}
     markers = {"sbr-3d": "o", "swirl-2d": "s"}
     colours = {
         ("sbr-3d", "finite-volume"): "tab:blue",
         ("sbr-3d", "lax-wendroff"): "tab:cyan",
         ("swirl-2d", "finite-volume"): "tab:red",
         ("swirl-2d", "lax-wendroff"): "tab:orange",
+        ("sbr-3d", "semi-lagrangian"): "tab:purple",
+        ("swirl-2d", "semi-lagrangian"): "tab:brown",
     }
     for entry in results:
         case, scheme, rows = entry["case"], entry["scheme"], entry["runs"]

@@ -278,10 +278,15 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
+    from .scene import _scene_schema
+
+    # the scene schema is the one list of schemes (the CLI does not import the kernels)
+    scheme_names = _scene_schema()["properties"]["numerics"]["properties"]["scheme"]["enum"]
+
     def add_mix_arguments(p):
         p.add_argument("--flow", help="a flow netCDF file (default: the scene's own flow)")
         p.add_argument("-o", "--output", default=".", help="output folder (default: .)")
-        p.add_argument("--scheme", choices=["finite-volume", "lax-wendroff"])
+        p.add_argument("--scheme", choices=scheme_names)
         p.add_argument("--k1", type=float)
         p.add_argument("--k2", type=float)
         p.add_argument("--revolutions", type=float)

@@ -1,4 +1,5 @@
-"""Pure-NumPy reference twins of the ADE kernels in :mod:`blendxr.ade.kernels`.
+"""Pure-NumPy reference twins of the ADE kernels (:mod:`blendxr.ade.kernels` and the
+semi-Lagrangian scheme's in :mod:`blendxr.ade.schemes.semi_lagrangian`).
 
 Slow and written for reading, not speed: whole-array expressions, one formula per line,
 no scratch-buffer juggling. Used only by the tests, which check that each numba kernel
@@ -23,6 +24,9 @@ __all__ = [
     "lw_free_surface_3d",
     "lw_step_2d",
     "lw_step_3d",
+    "sl_advect",
+    "sl_core",
+    "sl_diffuse",
 ]
 
 
@@ -338,4 +342,128 @@ def extend_into_empty(field, known, allowed, layers=2):
             break
         out[new] = total[new] / count[new]
         known = known | new
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# semi-Lagrangian
+# ---------------------------------------------------------------------------------------
+
+
+def _sl_bracket(p, n):
+    """Lower and upper index and the upper weight for positions ``p`` (cells, clamped)."""
+    if n == 1:
+        zero = np.zeros(p.shape, dtype=np.int64)
+        return zero, zero, np.zeros(p.shape)
+    i0 = np.clip(np.floor(p).astype(np.int64), 0, n - 2)
+    return i0, i0 + 1, p - i0
+
+
+def _sl_trilinear(field, lower, upper, frac, weight=None):
+    """Sum over the eight bracketing cells of the trilinear weight (times ``weight``)
+    times ``field``; returns (sum, sum of the weights)."""
+    num = np.zeros(lower[0].shape)
+    den = np.zeros(lower[0].shape)
+    for corner in itertools.product((0, 1), repeat=3):
+        index = tuple(up if o else lo for o, lo, up in zip(corner, lower, upper, strict=True))
+        w = np.ones(lower[0].shape)
+        for o, f in zip(corner, frac, strict=True):
+            w = w * (f if o else 1.0 - f)
+        if weight is not None:
+            w = w * weight[index]
+        num += w * field[index]
+        den += w
+    return num, den
+
+
+def _sl_cubic_weights(f, n):
+    """Lagrange weights of the points -1, 0, 1, 2 at fraction ``f`` (one point on an axis
+    of one cell)."""
+    if n == 1:
+        return [np.ones(f.shape)]
+    return [
+        -f * (f - 1.0) * (f - 2.0) / 6.0,
+        (f + 1.0) * (f - 1.0) * (f - 2.0) / 2.0,
+        -(f + 1.0) * f * (f - 2.0) / 2.0,
+        (f + 1.0) * f * (f - 1.0) / 6.0,
+    ]
+
+
+def sl_core(material):
+    """Twin of :func:`blendxr.ade.schemes.semi_lagrangian.sl_core`: every cell of the
+    stencil (offsets -1..2 on each axis longer than one cell, clamped) is material."""
+    mat = np.asarray(material) != 0
+    out = mat.copy()
+    ranges = [(-1, 0, 1, 2) if n > 1 else (0,) for n in mat.shape]
+    for offset in itertools.product(*ranges):
+        index = tuple(
+            np.clip(_position(mat.shape, axis) + s, 0, n - 1)
+            for axis, (s, n) in enumerate(zip(offset, mat.shape, strict=True))
+        )
+        out &= mat[index]
+    return out.astype(np.uint8)
+
+
+def sl_advect(c, out, vx, vy, vz, material, core, dt, hx, hy, hz):
+    """Twin of :func:`blendxr.ade.schemes.semi_lagrangian.sl_advect` (arrays of shape
+    (nx, ny, nz), a 2-D grid as nz = 1)."""
+    shape = c.shape
+    mat = material != 0
+    vel = (vx, vy, vz)
+    here = [_position(shape, axis).astype(float) for axis in range(3)]
+    steps = [dt / h for h in (hx, hy, hz)]
+
+    def clamp(p, n):
+        return np.clip(p, 0.0, n - 1.0)
+
+    def velocity_at(points):
+        brackets = [_sl_bracket(p, n) for p, n in zip(points, shape, strict=True)]
+        lower, upper, frac = zip(*brackets, strict=True)
+        return [_sl_trilinear(v, lower, upper, frac)[0] for v in vel]
+
+    u = [np.asarray(v, float) for v in vel]
+    for _ in range(2):  # the midpoint rule, two fixed-point iterations
+        mid = [clamp(x - 0.5 * s * w, n) for x, s, w, n in zip(here, steps, u, shape, strict=True)]
+        u = velocity_at(mid)
+    departure = [clamp(x - s * w, n) for x, s, w, n in zip(here, steps, u, shape, strict=True)]
+    brackets = [_sl_bracket(p, n) for p, n in zip(departure, shape, strict=True)]
+    lower, upper, frac = zip(*brackets, strict=True)
+
+    # the clipped cubic
+    cubic = np.zeros(shape)
+    weights = [_sl_cubic_weights(f, n) for f, n in zip(frac, shape, strict=True)]
+    for offset in itertools.product(*[range(len(w)) for w in weights]):
+        w = np.ones(shape)
+        index = []
+        for axis, o in enumerate(offset):
+            w = w * weights[axis][o]
+            base = lower[axis] - 1 if len(weights[axis]) == 4 else lower[axis]
+            index.append(np.clip(base + o, 0, shape[axis] - 1))
+        cubic += w * c[tuple(index)]
+    corners = [
+        c[tuple(up if o else lo for o, lo, up in zip(corner, lower, upper, strict=True))]
+        for corner in itertools.product((0, 1), repeat=3)
+    ]
+    cubic = np.clip(cubic, np.min(corners, axis=0), np.max(corners, axis=0))
+
+    # the material-weighted trilinear mean, or c itself without a material corner
+    num, den = _sl_trilinear(c, lower, upper, frac, weight=mat.astype(float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = np.where(den > 1e-12, num / den, c)
+
+    uses_cubic = (core != 0)[tuple(lower)]
+    out[...] = np.where(mat, np.where(uses_cubic, cubic, linear), c)
+    return out
+
+
+def sl_diffuse(c, out, dxx, dyy, dzz, material, rx, ry, rz):
+    """Twin of :func:`blendxr.ade.schemes.semi_lagrangian.sl_diffuse`."""
+    mat = material != 0
+    acc = np.zeros(c.shape)
+    for axis, (d, r) in enumerate(zip((dxx, dyy, dzz), (rx, ry, rz), strict=True)):
+        for s in (-1, 1):
+            neighbour = _shift(mat.astype(np.uint8), axis, s) != 0
+            face = 0.5 * (d + _shift(d, axis, s))
+            acc += np.where(neighbour, r * face * (_shift(c, axis, s) - c), 0.0)
+    out[...] = np.where(mat, c + acc, c)
     return out

@@ -9,10 +9,13 @@ from __future__ import annotations
 from .base import BOUND_TOLERANCE, Scheme
 from .finite_volume import FiniteVolume
 from .lax_wendroff import LaxWendroff
+from .semi_lagrangian import SemiLagrangian
 
 __all__ = ["BOUND_TOLERANCE", "SCHEMES", "Scheme", "make"]
 
-SCHEMES: dict[str, type[Scheme]] = {cls.name: cls for cls in (FiniteVolume, LaxWendroff)}
+SCHEMES: dict[str, type[Scheme]] = {
+    cls.name: cls for cls in (FiniteVolume, LaxWendroff, SemiLagrangian)
+}
 
 
 def make(name: str, grid, vessel, with_diffusion: bool) -> Scheme:
