@@ -14,7 +14,7 @@ sampled every 0.25 s (to show whether memory grows as phases pass), the ``phases
 and ``steps`` attributes, and the on-disk size of the flow file; the target is a peak
 below 2 GB (taken as 2 GiB).
 
-Run: ``python benchmarks/memory.py`` (both schemes, 1-4 minutes on 2 cores), or
+Run: ``python benchmarks/memory.py`` (every scheme, 1-6 minutes on 2 cores), or
 ``python benchmarks/memory.py --schemes lax-wendroff --revolutions 0.3``. Writes
 ``benchmarks/results/memory.json``.
 """

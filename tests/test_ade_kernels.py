@@ -417,6 +417,24 @@ def test_semi_lagrangian_is_bounded_keeps_constants_and_leaves_empty_cells(ndim)
     np.testing.assert_allclose(out, 0.37, rtol=0, atol=1e-15)
 
 
+def test_semi_lagrangian_rates_hand_values():
+    """Simple shear v_x = g y plus a constant v_y: the largest speed in cells per second
+    and the velocity jump between neighbours in cells per second, g hy / hx; cells without
+    material do not count."""
+    shape = (10, 12, 1)
+    hx, hy = 0.02, 0.01
+    g, vy = 3.0, -0.05
+    y = (np.arange(shape[1]) * hy).reshape(1, -1, 1)
+    vel = np.stack([np.broadcast_to(g * y, shape), np.full(shape, vy)])
+    material = np.ones(shape, np.uint8)
+    material[:, -1] = 0  # the fastest row is empty
+    fast = vel.copy()
+    fast[0, :, -1] = 1e3  # and what it holds does not count
+    speed, jump = sl.sl_max_rates(fast, vel, material, np.array([1 / hx, 1 / hy]))
+    assert speed == pytest.approx(max(g * (shape[1] - 2) * hy / hx, abs(vy) / hy), rel=1e-12)
+    assert jump == pytest.approx(g * hy / hx, rel=1e-12)
+
+
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_semi_lagrangian_diffusion_conserves_and_is_bounded_at_its_limit(ndim):
     """Flux form between material cells: the material's colour sum is kept to round-off,

@@ -453,7 +453,7 @@ def test_a_run_that_cannot_fit_or_end_is_refused_before_it_allocates(kwargs, wor
 
 
 def test_the_memory_estimate_covers_what_the_run_allocates():
-    """The plan's bytes per cell bound what tracemalloc sees (both schemes, 2-D; a budget
+    """The plan's bytes per cell bound what tracemalloc sees (every scheme, 2-D; a budget
     that leaves the reader its window of three phases, not the whole revolution)."""
     import tracemalloc
 

@@ -41,7 +41,7 @@ _ALIASES = {"side-side": "axial", "left-right": "axial"}
 
 #: bytes a mixing run holds per ADE cell besides its snapshots (state, double buffers,
 #: blended fields, the three prepared phases of the reader's window, metric
-#: temporaries), measured with tracemalloc on both schemes (the larger, rounded up)
+#: temporaries), measured with tracemalloc on every scheme (the largest, rounded up)
 BYTES_PER_CELL = {2: 350, 3: 420}
 #: at most this many records of the mixing curves (outputs) in one run
 MAX_RECORDS = 1_000_000
@@ -761,7 +761,8 @@ def mix(flow, scene=None, **overrides) -> xr.Dataset:
         Mixing and numerics settings; defaults to the scene stored in the flow's
         attributes, else built-in defaults.
     **overrides
-        Any of: ``scheme`` ("finite-volume" default, or "lax-wendroff"), ``initial`` (a
+        Any of: ``scheme`` ("finite-volume" default, "lax-wendroff" or "semi-lagrangian"),
+        ``initial`` (a
         loading name — top-bottom, axial, transverse, side-side, left-right — or a
         DataArray of c at t = 0), ``k1``, ``k2`` (default 1.9·k1), ``d`` (particle
         diameter, m), ``diffusivity`` (constant diagonal D in m2/s instead of eq. 5),

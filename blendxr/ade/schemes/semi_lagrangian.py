@@ -267,10 +267,11 @@ def sl_diffuse(c, out, dxx, dyy, dzz, material, rx, ry, rz):
 
 
 @njit(**_JIT)
-def sl_max_rates(vel_a, vel_b, material):
-    """(largest speed in cells per second along any axis, largest |dv_i/dx_j| in 1/s)
-    over the material cells of either phase; velocities in cells per second, shape
-    (ndim, nx, ny, nz)."""
+def sl_max_rates(vel_a, vel_b, material, inv_h):
+    """(largest speed in cells per second along any axis, largest difference of a
+    velocity component in cells per second between neighbouring material cells) over the
+    material cells of either phase; velocities (m/s) of shape (ndim, nx, ny, nz),
+    ``inv_h`` the inverse cell sizes (1/m) of the ndim axes."""
     ndim, nx, ny, nz = vel_a.shape
     speed = np.zeros(nx)
     grad = np.zeros(nx)
@@ -283,15 +284,16 @@ def sl_max_rates(vel_a, vel_b, material):
                     continue
                 for vel in (vel_a, vel_b):
                     for d in range(ndim):
+                        scale = inv_h[d]  # m/s to cells per second
                         v = vel[d, i, j, k]
-                        s_max = max(s_max, abs(v))
+                        s_max = max(s_max, abs(v) * scale)
                         # one-sided differences towards material neighbours
                         if i + 1 < nx and material[i + 1, j, k]:
-                            g_max = max(g_max, abs(vel[d, i + 1, j, k] - v))
+                            g_max = max(g_max, abs(vel[d, i + 1, j, k] - v) * scale)
                         if j + 1 < ny and material[i, j + 1, k]:
-                            g_max = max(g_max, abs(vel[d, i, j + 1, k] - v))
+                            g_max = max(g_max, abs(vel[d, i, j + 1, k] - v) * scale)
                         if k + 1 < nz and material[i, j, k + 1]:
-                            g_max = max(g_max, abs(vel[d, i, j, k + 1] - v))
+                            g_max = max(g_max, abs(vel[d, i, j, k + 1] - v) * scale)
         speed[i] = s_max
         grad[i] = g_max
     return speed.max() if nx else 0.0, grad.max() if nx else 0.0
@@ -332,13 +334,12 @@ class SemiLagrangian(Scheme):
     # --- per phase pair, per refresh, per step -------------------------------
     def max_dt(self, a, b):
         material = (a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)
-        h = np.asarray(self.grid.spacing, float)
-        # velocities in cells per second: one scale for every axis
-        scale = (1.0 / h).reshape(-1, *(1,) * self.ndim)
+        inv_h = 1.0 / np.asarray(self.grid.spacing, float)
         speed, grad = sl_max_rates(
-            (a.vel * scale).reshape(self.ndim, *self.shape3),
-            (b.vel * scale).reshape(self.ndim, *self.shape3),
+            a.vel.reshape(self.ndim, *self.shape3),
+            b.vel.reshape(self.ndim, *self.shape3),
             self._3d(material.view(np.uint8)),
+            inv_h,
         )  # fmt: skip
         limit = math.inf
         if speed > 0:
