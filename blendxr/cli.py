@@ -278,10 +278,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    from .scene import _scene_schema
+    from .scene import _key_schema
 
     # the scene schema is the one list of schemes (the CLI does not import the kernels)
-    scheme_names = _scene_schema()["properties"]["numerics"]["properties"]["scheme"]["enum"]
+    scheme_names = _key_schema("numerics.scheme")["enum"]
 
     def add_mix_arguments(p):
         p.add_argument("--flow", help="a flow netCDF file (default: the scene's own flow)")

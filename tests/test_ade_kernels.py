@@ -20,6 +20,7 @@ from blendxr.ade.stability import (
     diffusion_substeps,
     finite_volume_max_dt,
     lax_wendroff_max_dt,
+    unsplit_diffusion_substeps,
 )
 
 SHAPES = {2: (40, 36), 3: (18, 16, 14)}
@@ -801,6 +802,13 @@ def test_diffusion_substeps():
     assert diffusion_substeps((dxx, zero, dzz), (0.01, 0.01, 0.02), 1.2) == 3
     flat = np.zeros((4, 4))
     assert diffusion_substeps((flat, flat), (0.01, 0.01), 5.0) == 0
+
+
+def test_unsplit_diffusion_substeps():
+    # all axes at once: dt_sub <= 1 / (2 (1e-4 / 0.01**2 + 1e-5 / 0.02**2)) = 1 / 2.05 s
+    assert unsplit_diffusion_substeps((1e-4, 0.0, 1e-5), (0.01, 0.01, 0.02), 0.4) == 1
+    assert unsplit_diffusion_substeps((1e-4, 0.0, 1e-5), (0.01, 0.01, 0.02), 1.0) == 3
+    assert unsplit_diffusion_substeps((0.0, 0.0), (0.01, 0.01), 5.0) == 0
 
 
 def test_finite_volume_diffusion_substep_limit_keeps_bounds(one_thread):

@@ -165,3 +165,30 @@ def diffusion_substeps(diffusivities, spacing, dt):
     if math.isinf(dt_diff):
         return 0
     return max(1, math.ceil(float(dt) / dt_diff))
+
+
+def unsplit_diffusion_substeps(dmax, spacing, dt):
+    """Number of explicit sub-steps of an unsplit flux-form diffusion step.
+
+    All axes diffuse in one update, each face with the mean diffusivity of its two cells,
+    so the update is a convex combination when ``dt_sub * sum_k 2 max(D_kk) / h_k**2 <= 1``.
+
+    Parameters
+    ----------
+    dmax : sequence of float
+        The largest D_xx, D_yy (, D_zz) over the cells (m^2/s).
+    spacing : tuple of float
+        Cell sizes (m) per axis.
+    dt : float
+        The step to cover (s).
+
+    Returns
+    -------
+    int
+        0 when every diffusivity is zero, else the least count that keeps the bound (at
+        least 1).
+    """
+    rate = sum(2.0 * float(d) / float(h) ** 2 for d, h in zip(dmax, spacing, strict=True))
+    if rate == 0.0:
+        return 0
+    return max(1, math.ceil(float(dt) * rate))

@@ -8,7 +8,8 @@ repeats) and for what the interval's dt costs it (:meth:`Scheme.begin_interval`)
 refresh block it passes the blend weight (:meth:`Scheme.prepare`), then it calls
 :meth:`Scheme.step` once per step. At records it reads the concentration, the conserved
 species content and the scheme's own checks. A new scheme is one module defining a
-subclass and one line in :data:`blendxr.ade.schemes.SCHEMES`.
+subclass and one line in :data:`blendxr.ade.schemes.SCHEMES`; a scheme that carries the
+colour alone starts from :class:`ColourScheme` (its state, material mask and checks).
 """
 
 from __future__ import annotations
@@ -18,11 +19,14 @@ from typing import ClassVar
 
 import numpy as np
 
+from .. import kernels
 from ..grid import AdeGrid
 from ..phases import PreparedPhase
 
 #: How far outside [0, 1] a value may stray (round-off) before the run is stopped.
 BOUND_TOLERANCE = 1e-6
+#: At most this many diffusion sub-steps in one step (schemes that sub-cycle diffusion).
+MAX_DIFFUSION_SUBSTEPS = 1000
 
 
 class Scheme(ABC):
@@ -144,6 +148,19 @@ class Scheme(ABC):
         values to report for them."""
 
     # --- helpers ------------------------------------------------------------
+    @staticmethod
+    def checked_substeps(n_sub: int, dt: float, rule: str) -> int:
+        """``n_sub``, or a ValueError naming ``rule`` (the explicit limit the count was
+        made from) above :data:`MAX_DIFFUSION_SUBSTEPS`."""
+        if n_sub > MAX_DIFFUSION_SUBSTEPS:
+            raise ValueError(
+                f"the diffusivity needs {n_sub} sub-steps in one step of {dt:.3g} s "
+                f"(explicit diffusion is stable for {rule}); at most "
+                f"{MAX_DIFFUSION_SUBSTEPS}: lower mixing.k1 and mixing.k2, or use fewer "
+                "numerics.cells"
+            )
+        return n_sub
+
     def zero_stack(self) -> np.ndarray:
         """Zeros of shape (ndim, *grid shape): the diffusivity of a run without one."""
         if self._zeros is None:
@@ -152,3 +169,52 @@ class Scheme(ABC):
 
     def diffusivity_of(self, phase: PreparedPhase) -> np.ndarray:
         return phase.dif if phase.dif is not None else self.zero_stack()
+
+
+class ColourScheme(Scheme):
+    """A scheme that carries the colour c alone (not the material), in the cells where the
+    flow's blended fill reaches :attr:`MATERIAL_THRESHOLD`: the state, the material mask
+    and what records and checks read. Species content is not conserved by such a scheme;
+    the driver reports its drift."""
+
+    #: a cell is material when its blended fill reaches this fraction
+    MATERIAL_THRESHOLD: ClassVar[float] = 0.5
+    least_fill = MATERIAL_THRESHOLD
+    state_fields = ("c",)
+
+    def __init__(self, grid: AdeGrid, vessel: np.ndarray, with_diffusion: bool):
+        super().__init__(grid, vessel, with_diffusion)
+        shape = grid.shape
+        self.c = np.zeros(shape)
+        self.c_next = np.zeros(shape)
+        self.fill = np.zeros(shape)
+        self.material = np.zeros(shape, np.uint8)
+        self._active = 0
+
+    def initialise(self, fill, c0):
+        self.c[...] = c0
+
+    def material_of_pair(self, a: PreparedPhase, b: PreparedPhase) -> np.ndarray:
+        """uint8 mask of the cells that are material in either phase (every blend's)."""
+        both = (a.fill >= self.MATERIAL_THRESHOLD) | (b.fill >= self.MATERIAL_THRESHOLD)
+        return both.view(np.uint8)
+
+    def blend_material(self, a: PreparedPhase, b: PreparedPhase, w: float) -> None:
+        """The blended fill and its material mask at weight ``w``."""
+        kernels.lerp_into(self.fill.reshape(-1), a.fill.reshape(-1), b.fill.reshape(-1), w)
+        np.greater_equal(self.fill, self.MATERIAL_THRESHOLD, out=self.material.view(bool))
+
+    def active_cells(self, steps):
+        return self._active
+
+    def concentration(self, fill):
+        material = fill >= self.MATERIAL_THRESHOLD
+        return np.where(material, self.c, np.nan), np.where(material, fill, 0.0)
+
+    def species(self, c, weight):
+        return float(np.nansum(c * weight))
+
+    def faults(self):
+        c = self.c
+        bad = ~np.isfinite(c) | (c < -BOUND_TOLERANCE) | (c > 1 + BOUND_TOLERANCE)
+        return bad, c

@@ -21,8 +21,6 @@ from .base import BOUND_TOLERANCE, Scheme
 M_MIN = 1e-9
 #: material moves only among cells the flow fills (blended fill above this)
 SUPPORT_FILL = 1e-9
-#: at most this many diffusion sub-steps in one advection step
-MAX_DIFFUSION_SUBSTEPS = 1000
 #: the count of cells holding material is refreshed every this many steps (it is only
 #: the throughput figure's denominator)
 COUNT_EVERY = 50
@@ -71,22 +69,16 @@ class FiniteVolume(Scheme):
         )
 
     def begin_interval(self, a, b, dt):
-        """Diffusion sub-steps of one step, refused above :data:`MAX_DIFFUSION_SUBSTEPS`."""
+        """Diffusion sub-steps of one step, refused above
+        :data:`~blendxr.ade.schemes.base.MAX_DIFFUSION_SUBSTEPS`."""
         if not self.with_diffusion:
             self.n_sub = 0
             return 0
         # the largest diffusivity of any blend of a and b is the larger of their largest
         dmax = tuple(np.full((1,) * self.ndim, d) for d in np.maximum(a.dif_max, b.dif_max))
         n_sub = stability.diffusion_substeps(dmax, self.grid.spacing, dt)
-        if n_sub > MAX_DIFFUSION_SUBSTEPS:
-            raise ValueError(
-                f"the diffusivity needs {n_sub} sub-steps in one advection step of "
-                f"{dt:.3g} s (explicit diffusion is stable for D dt / h^2 <= 1/2 along each "
-                f"axis); at most {MAX_DIFFUSION_SUBSTEPS}: lower mixing.k1 and mixing.k2, or "
-                "use fewer numerics.cells"
-            )
-        self.n_sub = n_sub
-        return n_sub
+        self.n_sub = self.checked_substeps(n_sub, dt, "D dt / h^2 <= 1/2 along each axis")
+        return self.n_sub
 
     def blend_fields(self, a, b, w):
         kernels.fv_support(a.fill.reshape(-1), b.fill.reshape(-1), w,

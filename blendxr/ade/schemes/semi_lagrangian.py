@@ -9,7 +9,7 @@ order in space where the flow is smooth. Where the 4^d interpolation stencil rea
 cell without material (the free surface, the wall) the value is the material-weighted
 trilinear mean of the bracketing cells, so no colour is drawn from empty cells. Diffusion
 follows as explicit flux-form sub-steps between material cells (no flux into empty
-cells), as many as ``dt_sub * sum_k 2 D_kk / h_k**2 <= 1`` needs, each a convex
+cells), as many as ``dt_sub * sum_k 2 max(D_kk) / h_k**2 <= 1`` needs, each a convex
 combination and so bounded.
 
 Advection by interpolation is stable at any dt; what limits dt is accuracy:
@@ -29,18 +29,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .. import kernels
-from .base import BOUND_TOLERANCE, Scheme
+from .. import kernels, stability
+from .base import ColourScheme
 
-#: a cell is material when its interpolated fill reaches this fraction (as lax-wendroff)
-MATERIAL_THRESHOLD = 0.5
 #: at most this many cells of travel per step (an accuracy limit, not a stability one)
 COURANT = 4.0
 #: at most this deformational Courant number dt * max |dv_i/dx_j| (trajectories cross
 #: above 1; the midpoint rule is accurate well below it)
 LIPSCHITZ = 0.5
-#: at most this many diffusion sub-steps in one step
-MAX_DIFFUSION_SUBSTEPS = 1000
 
 _JIT = {"parallel": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _JIT_INLINE = {"cache": True, "fastmath": False, "error_model": "numpy", "inline": "always"}
@@ -51,7 +47,8 @@ _JIT_INLINE = {"cache": True, "fastmath": False, "error_model": "numpy", "inline
 
 @njit(**_JIT_INLINE)
 def _bracket(p, n):
-    """Lower index, upper index and weight of the upper one for position ``p`` (cells)."""
+    """Lower index, upper index and weight of the upper one for position ``p`` (cells);
+    a position outside the grid takes the nearest end cell."""
     if n == 1:
         return 0, 0, 0.0
     if p <= 0.0:
@@ -63,6 +60,12 @@ def _bracket(p, n):
 
 
 @njit(**_JIT_INLINE)
+def _corner(o, i0, i1, f):
+    """Index and linear weight of the lower (``o`` = 0) or upper (1) bracketing cell."""
+    return (i0, 1.0 - f) if o == 0 else (i1, f)
+
+
+@njit(**_JIT_INLINE)
 def _velocity_at(vx, vy, vz, px, py, pz):
     """The velocity (m/s) trilinearly at position (px, py, pz) in cells."""
     nx, ny, nz = vx.shape
@@ -71,23 +74,16 @@ def _velocity_at(vx, vy, vz, px, py, pz):
     k0, k1, fz = _bracket(pz, nz)
     ux = uy = uz = 0.0
     for a in range(2):
-        i = i0 if a == 0 else i1
-        wa = 1.0 - fx if a == 0 else fx
+        i, wa = _corner(a, i0, i1, fx)
         for b in range(2):
-            j = j0 if b == 0 else j1
-            wab = wa * (1.0 - fy if b == 0 else fy)
+            j, wb = _corner(b, j0, j1, fy)
             for g in range(2):
-                k = k0 if g == 0 else k1
-                w = wab * (1.0 - fz if g == 0 else fz)
+                k, wg = _corner(g, k0, k1, fz)
+                w = wa * wb * wg
                 ux += w * vx[i, j, k]
                 uy += w * vy[i, j, k]
                 uz += w * vz[i, j, k]
     return ux, uy, uz
-
-
-@njit(**_JIT_INLINE)
-def _clamp(p, n):
-    return min(max(p, 0.0), n - 1.0)
 
 
 @njit(**_JIT_INLINE)
@@ -140,15 +136,13 @@ def _sample(c, material, core, px, py, pz, fallback):
     num = 0.0
     den = 0.0
     for a in range(2):
-        i = i0 if a == 0 else i1
-        wa = 1.0 - fx if a == 0 else fx
+        i, wa = _corner(a, i0, i1, fx)
         for b in range(2):
-            j = j0 if b == 0 else j1
-            wab = wa * (1.0 - fy if b == 0 else fy)
+            j, wb = _corner(b, j0, j1, fy)
             for g in range(2):
-                k = k0 if g == 0 else k1
+                k, wg = _corner(g, k0, k1, fz)
                 if material[i, j, k]:
-                    w = wab * (1.0 - fz if g == 0 else fz)
+                    w = wa * wb * wg
                     num += w * c[i, j, k]
                     den += w
     if den > 1e-12:
@@ -188,15 +182,10 @@ def sl_advect(c, out, vx, vy, vz, material, core, dt, hx, hy, hz):
                 ux, uy, uz = vx[i, j, k], vy[i, j, k], vz[i, j, k]
                 for _ in range(2):
                     ux, uy, uz = _velocity_at(
-                        vx, vy, vz,
-                        _clamp(i - 0.5 * sx * ux, nx),
-                        _clamp(j - 0.5 * sy * uy, ny),
-                        _clamp(k - 0.5 * sz * uz, nz),
+                        vx, vy, vz, i - 0.5 * sx * ux, j - 0.5 * sy * uy, k - 0.5 * sz * uz
                     )  # fmt: skip
                 out[i, j, k] = _sample(
-                    c, material, core,
-                    _clamp(i - sx * ux, nx), _clamp(j - sy * uy, ny), _clamp(k - sz * uz, nz),
-                    c[i, j, k],
+                    c, material, core, i - sx * ux, j - sy * uy, k - sz * uz, c[i, j, k]
                 )  # fmt: skip
 
 
@@ -241,7 +230,8 @@ def sl_diffuse(c, out, dxx, dyy, dzz, material, rx, ry, rz):
     """One explicit diffusion sub-step from ``c`` into ``out``: flux form between
     material cells (face diffusivity the mean of its two cells), no flux into empty
     cells. ``rx = dt_sub / hx**2`` etc.; stable and bounded when
-    ``max(2 (rx dxx + ry dyy + rz dzz)) <= 1``."""
+    ``2 (rx max(dxx) + ry max(dyy) + rz max(dzz)) <= 1``
+    (:func:`blendxr.ade.stability.unsplit_diffusion_substeps`)."""
     nx, ny, nz = c.shape
     for i in prange(nx):
         for j in range(ny):
@@ -302,44 +292,30 @@ def sl_max_rates(vel_a, vel_b, material, inv_h):
 # ---------------------------------------------------------------------------- the scheme
 
 
-class SemiLagrangian(Scheme):
+class SemiLagrangian(ColourScheme):
     """Quasi-monotone cubic semi-Lagrangian advection of c, explicit diffusion."""
 
     name = "semi-lagrangian"
-    least_fill = MATERIAL_THRESHOLD
-    state_fields = ("c",)
 
     def __init__(self, grid, vessel, with_diffusion):
         super().__init__(grid, vessel, with_diffusion)
         self.shape3 = tuple(grid.shape) + (1,) * (3 - self.ndim)
-        shape = grid.shape
-        self.c = np.zeros(shape)
-        self.c_next = np.zeros(shape)
-        self.fill = np.zeros(shape)
-        self.material = np.zeros(shape, np.uint8)
         self.core = np.zeros(self.shape3, np.uint8)
         self._scratch = np.zeros(self.shape3, np.uint8)
         self.vel = np.zeros((3, *self.shape3))  # z stays zero on a 2-D grid
         self.dif = np.zeros((3, *self.shape3)) if with_diffusion else None
         self.n_sub = 0
-        self._active = 0
 
     def _3d(self, a):
         return a.reshape(self.shape3)
 
-    # --- state ---------------------------------------------------------------
-    def initialise(self, fill, c0):
-        self.c[...] = c0
-
     # --- per phase pair, per refresh, per step -------------------------------
     def max_dt(self, a, b):
-        material = (a.fill >= MATERIAL_THRESHOLD) | (b.fill >= MATERIAL_THRESHOLD)
-        inv_h = 1.0 / np.asarray(self.grid.spacing, float)
         speed, grad = sl_max_rates(
             a.vel.reshape(self.ndim, *self.shape3),
             b.vel.reshape(self.ndim, *self.shape3),
-            self._3d(material.view(np.uint8)),
-            inv_h,
+            self._3d(self.material_of_pair(a, b)),
+            1.0 / np.asarray(self.grid.spacing, float),
         )  # fmt: skip
         limit = math.inf
         if speed > 0:
@@ -349,26 +325,18 @@ class SemiLagrangian(Scheme):
         return float(limit)
 
     def begin_interval(self, a, b, dt):
-        """Diffusion sub-steps of one step, refused above :data:`MAX_DIFFUSION_SUBSTEPS`."""
+        """Diffusion sub-steps of one step, refused above
+        :data:`~blendxr.ade.schemes.base.MAX_DIFFUSION_SUBSTEPS`."""
         if not self.with_diffusion:
             self.n_sub = 0
             return 0
         dmax = np.maximum(a.dif_max, b.dif_max)
-        rate = sum(2.0 * d / h**2 for d, h in zip(dmax, self.grid.spacing, strict=True))
-        n_sub = 0 if rate == 0 else max(1, math.ceil(dt * rate - 1e-12))
-        if n_sub > MAX_DIFFUSION_SUBSTEPS:
-            raise ValueError(
-                f"the diffusivity needs {n_sub} sub-steps in one step of {dt:.3g} s "
-                "(explicit diffusion is stable for dt * sum_k 2 D_kk / h_k^2 <= 1); at most "
-                f"{MAX_DIFFUSION_SUBSTEPS}: lower mixing.k1 and mixing.k2, or use fewer "
-                "numerics.cells"
-            )
-        self.n_sub = n_sub
-        return n_sub
+        n_sub = stability.unsplit_diffusion_substeps(dmax, self.grid.spacing, dt)
+        self.n_sub = self.checked_substeps(n_sub, dt, "dt * sum_k 2 D_kk / h_k^2 <= 1")
+        return self.n_sub
 
     def blend_fields(self, a, b, w):
-        kernels.lerp_into(self.fill.reshape(-1), a.fill.reshape(-1), b.fill.reshape(-1), w)
-        np.greater_equal(self.fill, MATERIAL_THRESHOLD, out=self.material.view(bool))
+        self.blend_material(a, b, w)
         sl_core(self._3d(self.material), self.core, self._scratch)
         for d in range(self.ndim):
             kernels.lerp_into(self.vel[d].reshape(-1), a.vel[d].reshape(-1),
@@ -383,9 +351,9 @@ class SemiLagrangian(Scheme):
 
     def step(self):
         h = tuple(self.grid.spacing) + (1.0,) * (3 - self.ndim)
-        c, out = self._3d(self.c), self._3d(self.c_next)
         material = self._3d(self.material)
-        sl_advect(c, out, *self.vel, material, self.core, self._dt, *h)
+        sl_advect(self._3d(self.c), self._3d(self.c_next), *self.vel, material, self.core,
+                  self._dt, *h)  # fmt: skip
         self.c, self.c_next = self.c_next, self.c
         if self.n_sub:
             dt_sub = self._dt / self.n_sub
@@ -393,19 +361,3 @@ class SemiLagrangian(Scheme):
             for _ in range(self.n_sub):
                 sl_diffuse(self._3d(self.c), self._3d(self.c_next), *self.dif, material, *r)
                 self.c, self.c_next = self.c_next, self.c
-
-    def active_cells(self, steps):
-        return self._active
-
-    # --- what records and checks read ----------------------------------------
-    def concentration(self, fill):
-        material = fill >= MATERIAL_THRESHOLD
-        return np.where(material, self.c, np.nan), np.where(material, fill, 0.0)
-
-    def species(self, c, weight):
-        return float(np.nansum(c * weight))
-
-    def faults(self):
-        c = self.c
-        bad = ~np.isfinite(c) | (c < -BOUND_TOLERANCE) | (c > 1 + BOUND_TOLERANCE)
-        return bad, c
