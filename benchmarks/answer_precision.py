@@ -165,6 +165,29 @@ GROUPS["drum_ade_cells"] = (
     {"100": {}, "200": {"numerics.cells": 200}, "400": {"numerics.cells": 400}},
     "400",
 )
+GROUPS["drum_scheme"] = (
+    # the drum's time to the floor rises with the ADE cells (numerical diffusion blurs
+    # its spiral's bands): does a less diffusive scheme converge sooner?
+    "drum-calibration",
+    {
+        f"{scheme}_{cells}": {"numerics.scheme": scheme, "numerics.cells": cells}
+        for scheme in ("finite-volume", "lax-wendroff", "semi-lagrangian")
+        for cells in (100, 200, 400)
+    },
+    "semi-lagrangian_400",
+)
+GROUPS["drum_flow_cell"] = (
+    # the calibration drum's answer (revolutions to the intensity floor) against the flow
+    # cell, at the shipped 100 ADE cells: the drum half of the flow issue's convergence
+    "drum-calibration",
+    {
+        "5mm": {"flow.cell": 0.005},
+        "3.5mm": {"flow.cell": 0.0035},
+        "2.5mm": {},
+        "1.75mm": {"flow.cell": 0.00175},
+    },
+    "1.75mm",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
@@ -243,6 +266,7 @@ def run_case(case: str) -> dict:
         "flow_key": source.key,
         "flow_wall_s": float(flow.attrs.get("wall_time_s", math.nan)),
         "flow_cache": source.cache,
+        "density_projection_every": int(flow.attrs.get("density_projection_every", 0)),
         "mix_wall_s": stages.records["mixing"]["wall_s"],
         "mix_peak_mb": stages.records["mixing"]["peak_memory_mb"],
         "revolutions_to_rsd": summary["revolutions_to_rsd"],
@@ -292,6 +316,19 @@ def _fmt_floor(result: dict) -> str:
     return _fmt_rev(result.get("revolutions_to_intensity_floor"))
 
 
+#: The first study run made on the cured flow (projection and B-spline fill defaults);
+#: results from before the flow's ``density_projection_every`` was recorded are dated.
+CURED_SINCE = "2026-12-03 13:45:00"
+
+
+def _flow_state(result: dict) -> str:
+    """ "cured" or "before": the flow solver's defaults the case ran on."""
+    every = result.get("density_projection_every")
+    if every is not None:
+        return "cured" if every > 0 else "no projection"
+    return "cured" if result.get("finished", "") >= CURED_SINCE else "before"
+
+
 def report(cases: dict, machine: dict) -> str:
     lines = [
         "# The error of the answer against its cost",
@@ -305,12 +342,11 @@ def report(cases: dict, machine: dict) -> str:
         "Flow s: the solve's wall time "
         "(a cached flow keeps it); mix s: the mixing run.",
         "",
-        "Every group but `small_projection` and `small_flow_cell_cured` was run with "
-        "the flow solver before the density projection and ψ = 0 became the defaults "
-        "and before the fill was "
-        "deposited with B-splines (docs/flow.md): its flows crowd past their packing as "
-        "`flow_crowding.md` shows; `small_projection` measures what the change does to "
-        "the answer.",
+        'Column "flow": *cured* where the case ran on the flow solver as it now is '
+        "(density projection, ψ = 0, the fill deposited with B-splines; docs/flow.md), "
+        "*before* where it ran before those became the defaults: such flows crowd past "
+        "their packing as `flow_crowding.md` shows; `small_projection` measures what the "
+        "change does to the answer.",
         "",
     ]
     for group, (base, members, ref) in GROUPS.items():
@@ -338,6 +374,7 @@ def report(cases: dict, machine: dict) -> str:
                     "" if result.get("fill_share") is None else f"{result['fill_share']:.1%}",
                     f"{result['flow_wall_s']:.0f}",
                     f"{result['mix_wall_s']:.0f}",
+                    _flow_state(result),
                 ]
             )
         lines += [
@@ -357,6 +394,7 @@ def report(cases: dict, machine: dict) -> str:
                     "fill",
                     "flow s",
                     "mix s",
+                    "flow",
                 ],  # fmt: skip
                 rows,
             ),
