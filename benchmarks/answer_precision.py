@@ -172,9 +172,16 @@ GROUPS["drum_scheme"] = (
     {
         f"{scheme}_{cells}": {"numerics.scheme": scheme, "numerics.cells": cells}
         for scheme in ("finite-volume", "lax-wendroff", "semi-lagrangian")
-        for cells in (100, 200, 400)
+        for cells in (100, 200, 400, 800)
     },
-    "semi-lagrangian_400",
+    "semi-lagrangian_800",
+)
+# k1 and the flow cell again with the less diffusive setting the scheme group chose
+LOW_DIFFUSION = {"numerics.scheme": "lax-wendroff", "numerics.cells": 400}
+GROUPS["drum_k1_lw400"] = (
+    "drum-calibration",
+    {f"{k1:g}": {**LOW_DIFFUSION, "mixing.k1": k1} for k1 in (0.0, 0.005, 0.01, 0.02, 0.04)},
+    "0.01",
 )
 GROUPS["drum_flow_cell"] = (
     # the calibration drum's answer (revolutions to the intensity floor) against the flow
@@ -186,6 +193,11 @@ GROUPS["drum_flow_cell"] = (
         "2.5mm": {},
         "1.75mm": {"flow.cell": 0.00175},
     },
+    "1.75mm",
+)
+GROUPS["drum_flow_cell_lw400"] = (
+    "drum-calibration",
+    {member: {**LOW_DIFFUSION, **values} for member, values in GROUPS["drum_flow_cell"][1].items()},
     "1.75mm",
 )
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
