@@ -33,11 +33,12 @@ import os
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 
 import math  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import REPO, RESULTS, flow_cache, machine_line, run_cases, table  # noqa: E402
+from _common import REPO, RESULTS, echo, flow_cache, machine_line, run_cases, table  # noqa: E402
 
 NAME = "answer_precision"
 LEVELS = (0.2, 0.1, 0.05)
@@ -457,14 +458,57 @@ def figure(cases: dict) -> Path:
     for ax in list(axes.flat)[len(groups) :]:
         ax.axis("off")
     fig.tight_layout()
-    import sys
-
     sys.path.insert(0, str(REPO))
     from blendxr.plot import save_figure
 
     return save_figure(fig, RESULTS / f"{NAME}.png")
 
 
+DRUM_SNAPSHOTS = (0.5, 1.0, 2.0, 4.0)
+
+
+def drum_figure() -> Path:
+    """The drum's concentration at a few revolutions and its intensity curve, one row per
+    member of ``drum_flow_cell_lw400`` (flows from the cache): where its answers part."""
+    import matplotlib.pyplot as plt
+
+    import blendxr as bx
+    from blendxr import pipeline
+
+    base, members, _ = GROUPS["drum_flow_cell_lw400"]
+    n = len(DRUM_SNAPSHOTS)
+    fig, axes = plt.subplots(len(members), n + 1, figsize=(3.2 * (n + 1), 2.8 * len(members)))
+    for row, (member, values) in zip(axes, members.items(), strict=True):
+        scene = bx.load_scene(
+            base,
+            {**values, "mixing.snapshots": list(DRUM_SNAPSHOTS),
+             "mixing.revolutions": max(DRUM_SNAPSHOTS)},
+        )  # fmt: skip
+        flow, _ = pipeline.scene_flow(scene, cache=flow_cache(), progress=False)
+        mixed = bx.mix(flow, scene, progress=False)
+        for ax, c in zip(row, mixed["c"], strict=False):
+            ax.pcolormesh(mixed.x, mixed.y, c.T, vmin=0, vmax=1, cmap="coolwarm")
+            ax.set_aspect("equal")
+            ax.set_xlim(-0.05, 0.08)
+            ax.set_ylim(-0.08, 0.03)
+            ax.set_title(f"flow {member}, rev {float(c.snapshot_revolution):g}", fontsize=8)
+            ax.tick_params(labelsize=6)
+        ax = row[-1]
+        ax.semilogy(mixed["revolution"], mixed["intensity"], label="intensity")
+        ax.axhline(mixed.attrs["random_mixture_intensity"], ls=":", color="k", label="floor")
+        ax.set_xlabel("revolutions", fontsize=8)
+        ax.legend(fontsize=7)
+    fig.suptitle("drum-calibration, Lax-Wendroff on 400 ADE cells, k1 = 0.01", fontsize=10)
+    fig.tight_layout()
+    sys.path.insert(0, str(REPO))
+    from blendxr.plot import save_figure
+
+    return save_figure(fig, RESULTS / f"{NAME}_drum.png")
+
+
 if __name__ == "__main__":
+    if "--drum-figure" in sys.argv:
+        echo(f"wrote {drum_figure()}")
+        raise SystemExit(0)
     payload = run_cases(NAME, __doc__.splitlines()[0], CASES, run_case, report, summary)
     figure(payload["cases"])
