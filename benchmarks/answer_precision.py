@@ -506,7 +506,63 @@ def drum_figure() -> Path:
     return save_figure(fig, RESULTS / f"{NAME}_drum.png")
 
 
+#: k1 the "measured" curves are made at, their relative noise, the seeds, the fit's grid
+CALIBRATION_TRUTH = 0.01
+CALIBRATION_NOISE = (0.03, 0.1)
+CALIBRATION_SEEDS = (1, 2)
+CALIBRATION_GRID = (0.0, 0.005, 0.01, 0.02, 0.04)
+
+
+def drum_calibration() -> dict:
+    """How well `calibrate_k1` pins k1 down on the shipped drum: curves made by the model at
+    k1 = CALIBRATION_TRUTH with multiplicative noise, every half revolution, fitted on
+    CALIBRATION_GRID. Writes ``answer_precision_drum_calibration.json``."""
+    from _common import machine, write_json
+
+    import blendxr as bx
+
+    scene = bx.load_scene("drum-calibration")
+    flow, _ = bx.scene_flow(scene, cache=flow_cache(), progress=False)
+    truth = bx.mix(flow, scene, k1=CALIBRATION_TRUTH, progress=False)
+    curve = truth["intensity"].swap_dims(time="revolution").dropna("revolution")
+    rows = []
+    for noise in CALIBRATION_NOISE:
+        for seed in CALIBRATION_SEEDS:
+            rng = np.random.default_rng(seed)
+            measured = curve * (1 + noise * rng.standard_normal(curve.size))
+            measured = measured.isel(revolution=slice(1, None, 2)).rename("intensity")
+            started = time.perf_counter()
+            fit = bx.calibrate_k1(measured, scene, flow=flow, k1=list(CALIBRATION_GRID))
+            rows.append(
+                {
+                    "noise": noise,
+                    "seed": seed,
+                    "best_k1": float(fit.attrs["best_k1"]),
+                    "best_cost": float(fit.attrs["best_cost"]),
+                    "source": fit.attrs["best_cost_source"],
+                    "wall_s": time.perf_counter() - started,
+                }
+            )
+            echo(f"noise {noise:.0%} seed {seed}: best k1 {rows[-1]['best_k1']:.4f} "
+                 f"({rows[-1]['source']}), {rows[-1]['wall_s']:.0f} s")  # fmt: skip
+    payload = {
+        "machine": machine(),
+        "scene": "drum-calibration (as shipped)",
+        "truth_k1": CALIBRATION_TRUTH,
+        "grid": CALIBRATION_GRID,
+        "fits": rows,
+    }
+    write_json(f"{NAME}_drum_calibration", payload)
+    echo(table(["noise", "seed", "best k1", "cost", "from", "wall s"],
+               [[f"{r['noise']:.0%}", r["seed"], f"{r['best_k1']:.4f}", f"{r['best_cost']:.3f}",
+                 r["source"], f"{r['wall_s']:.0f}"] for r in rows]))  # fmt: skip
+    return payload
+
+
 if __name__ == "__main__":
+    if "--drum-calibration" in sys.argv:
+        drum_calibration()
+        raise SystemExit(0)
     if "--drum-figure" in sys.argv:
         echo(f"wrote {drum_figure()}")
         raise SystemExit(0)
