@@ -339,6 +339,21 @@ def write_json(name: str, payload: dict, directory: Path | None = None) -> Path:
     return write_atomic(Path(directory or RESULTS) / f"{name}.json", text)
 
 
+def cpu_label(info: dict | None) -> str:
+    """A short name of a machine's processor, such as ``AMD EPYC 25/17``."""
+    if not info:
+        return ""
+    cpu = info.get("cpu") or {}
+    model = f" {cpu.get('family')}/{cpu.get('model')}" if cpu.get("family") else ""
+    return f"{info.get('cpu_model', '?')}{model}"
+
+
+def _with_cpu(cases: dict, info: dict | None) -> dict:
+    """``cases`` with ``"cpu"`` set (from ``info``) on those that lack it."""
+    label = cpu_label(info)
+    return {k: v if "cpu" in v or not label else {**v, "cpu": label} for k, v in cases.items()}
+
+
 def merge_cases(name: str, new: dict, report, directory: Path | None = None) -> dict:
     """Merge ``new["cases"]`` into the results ``name`` under a lock, rewrite its JSON and
     its table (``report(cases, machine)``, a Markdown string) and return the merged payload.
@@ -352,7 +367,10 @@ def merge_cases(name: str, new: dict, report, directory: Path | None = None) -> 
         fcntl.flock(lock, fcntl.LOCK_EX)
         path = directory / f"{name}.json"
         old = json.loads(path.read_text()) if path.exists() else {}
-        cases = {**old.get("cases", {}), **new["cases"]}
+        # the payload's machine is the latest run's; each case keeps the processor it ran
+        # on, so that a table merged from several machines says which time is whose
+        old_cases = _with_cpu(old.get("cases", {}), old.get("machine"))
+        cases = {**old_cases, **_with_cpu(new["cases"], new.get("machine"))}
         payload = {**old, **new, "cases": cases}
         write_json(name, payload, directory)
         write_atomic(directory / f"{name}.md", report(cases, payload["machine"]))
