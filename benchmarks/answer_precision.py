@@ -270,7 +270,13 @@ GROUPS["tote-60-top-bottom_scheme"] = (
             "numerics.scheme": "semi-lagrangian",
             "numerics.cells": 150,
         },
+        "semi-lagrangian_200": {
+            **_AVG,
+            "numerics.scheme": "semi-lagrangian",
+            "numerics.cells": 200,
+        },
         "lax-wendroff_200": {**_AVG, "numerics.scheme": "lax-wendroff", "numerics.cells": 200},
+        "lax-wendroff_250": {**_AVG, "numerics.scheme": "lax-wendroff", "numerics.cells": 250},
     },
     "lax-wendroff_200",
 )
