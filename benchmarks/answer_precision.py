@@ -46,6 +46,8 @@ LEVELS = (0.2, 0.1, 0.05)
 #: Every case mixes until its RSD is below the last level (or this many revolutions), so
 #: that N(0.05) is an interpolation, not "not reached".
 STUDY_MIXING = {"mixing.revolutions": 40, "mixing.stop_rsd": 0.04}
+#: the segregation intensity whose time is reported beside the time to the floor
+INTENSITY_LEVEL = 0.1
 MU_I = {"material.friction_angle_limit_deg": 37.7}  # docs/flow.md: the drum's mu(I) runs
 
 #: group -> (base scene, {member: dotted overrides}, reference member)
@@ -210,6 +212,13 @@ GROUPS["drum_flow_cell_lw400"] = (
     {m: {**LOW_DIFFUSION, **v} for m, v in DRUM_FLOW_CELLS.items()},
     "1.75mm",
 )
+# the same without shear diffusion: what the flow's advection and the scheme mix alone,
+# and whether the finest flow's late plateau comes from the flow or from k1
+GROUPS["drum_flow_cell_lw400_k1_0"] = (
+    "drum-calibration",
+    {m: {**LOW_DIFFUSION, **v, "mixing.k1": 0.0} for m, v in DRUM_FLOW_CELLS.items()},
+    "1.75mm",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
@@ -278,7 +287,8 @@ GROUPS["tote-60-top-bottom_scheme"] = (
         "lax-wendroff_200": {**_AVG, "numerics.scheme": "lax-wendroff", "numerics.cells": 200},
         "lax-wendroff_250": {**_AVG, "numerics.scheme": "lax-wendroff", "numerics.cells": 250},
     },
-    "lax-wendroff_200",
+    # the finest member of the one sequence whose answer settles as its cells shrink
+    "semi-lagrangian_200",
 )
 
 CASES = {
@@ -323,11 +333,14 @@ def run_case(case: str) -> dict:
     summary = pipeline.mixing_summary(mixed, LEVELS)
     flow_info = pipeline.flow_summary(flow)
     floor = summary["random_mixture_intensity"]
-    to_floor = None
+    to_floor = to_intensity = intensity = None
     if floor is not None:
-        to_floor = pipeline.revolutions_to_level(
-            mixed["revolution"].values, mixed["intensity"].values, floor
-        )
+        revolution, intensity = mixed["revolution"].values, mixed["intensity"].values
+        to_floor = pipeline.revolutions_to_level(revolution, intensity, floor)
+        # a level well above the floor: where a curve flattens just above its floor, the
+        # time to the floor is ill-conditioned and this one is not
+        to_intensity = pipeline.revolutions_to_level(revolution, intensity, INTENSITY_LEVEL)
+        intensity = [None if not np.isfinite(v) else float(v) for v in intensity]
     return {
         "base": base,
         "values": values,
@@ -343,6 +356,8 @@ def run_case(case: str) -> dict:
         "random_mixture_rsd": summary["random_mixture_rsd"],
         "random_mixture_intensity": floor,
         "revolutions_to_intensity_floor": to_floor,
+        f"revolutions_to_intensity_{INTENSITY_LEVEL:g}": to_intensity,
+        "intensity": intensity,
         "periodicity_eq30": flow_info.get("periodicity_eq30"),
         "fill_share": flow_info.get("fill_share"),
         "revolution": mixed["revolution"].values.tolist(),
@@ -384,6 +399,14 @@ def _fmt_floor(result: dict) -> str:
     return _fmt_rev(result.get("revolutions_to_intensity_floor"))
 
 
+def _fmt_intensity_level(result: dict) -> str:
+    """Revolutions to INTENSITY_LEVEL (blank where the run did not record it)."""
+    key = f"revolutions_to_intensity_{INTENSITY_LEVEL:g}"
+    if key not in result or result.get("intensity") is None:
+        return ""
+    return _fmt_rev(result[key])
+
+
 #: The first study run made on the cured flow (projection and B-spline fill defaults);
 #: results from before the flow's ``density_projection_every`` was recorded are dated.
 CURED_SINCE = "2026-12-03 13:45:00"
@@ -408,7 +431,8 @@ def report(cases: dict, machine: dict) -> str:
         "N(x): revolutions to RSD x (log-linear between records every 0.25 revolution); "
         "|dN|: against the group's reference (marked *); curve: the largest relative "
         "difference of the RSD curve from the reference's. N(I_R): revolutions to the "
-        "random-mixture segregation intensity of the sampling cells (where one is defined). "
+        "random-mixture segregation intensity of the sampling cells (where one is defined), "
+        f"N(I {INTENSITY_LEVEL:g}): to that intensity (runs that recorded it). "
         "Flow s: the solve's wall time "
         "(a cached flow keeps it); mix s: the mixing run.",
         "",
@@ -440,6 +464,7 @@ def report(cases: dict, machine: dict) -> str:
                     "" if "rsd_curve" not in err else f"{err['rsd_curve']:.1%}",
                     f"{result['final_rsd']:.4f}",
                     _fmt_floor(result),
+                    _fmt_intensity_level(result),
                     " / ".join(f"{v:.0%}" for v in p.values()) if p else "",
                     "" if result.get("fill_share") is None else f"{result['fill_share']:.1%}",
                     f"{result['flow_wall_s']:.0f}",
@@ -461,6 +486,7 @@ def report(cases: dict, machine: dict) -> str:
                     "curve",
                     "final RSD",
                     "N(I_R)",
+                    f"N(I {INTENSITY_LEVEL:g})",
                     "eq. 30",
                     "fill",
                     "flow s",
@@ -522,7 +548,9 @@ def figure(cases: dict) -> Path:
     return save_figure(fig, RESULTS / f"{NAME}.png")
 
 
-DRUM_SNAPSHOTS = (0.5, 1.0, 2.0, 4.0)
+#: revolutions drawn; the last lies past where the coarser flows reach the floor, so the
+#: run goes on without the scene's floor stop
+DRUM_SNAPSHOTS = (0.5, 2.0, 4.0, 12.0)
 
 
 def drum_figure() -> Path:
@@ -543,7 +571,7 @@ def drum_figure() -> Path:
              "mixing.revolutions": max(DRUM_SNAPSHOTS)},
         )  # fmt: skip
         flow, _ = pipeline.scene_flow(scene, cache=flow_cache(), progress=False)
-        mixed = bx.mix(flow, scene, progress=False)
+        mixed = bx.mix(flow, scene, stop_intensity=None, progress=False)
         bed = mixed["c"].notnull().any("snapshot")  # the frame: where material ever is
         xs, ys = mixed.x.where(bed.any("y"), drop=True), mixed.y.where(bed.any("x"), drop=True)
         for ax, c in zip(row, mixed["c"], strict=False):
