@@ -27,6 +27,7 @@ from .grid import (
     interpolate,
     interpolate_fields_into,
 )
+from .solenoidal import remove_divergence
 
 __all__ = ["PreparedPhase", "CyclicPhaseReader"]
 
@@ -92,6 +93,24 @@ def plausible_speed(flow, coords) -> float:
     return SPEED_MARGIN * (omega * diagonal + math.sqrt(2.0 * gravity * diagonal))
 
 
+def _divergence_treatment(flow, n_phases: int, requested: str) -> str:
+    """What is done with the stored velocity's divergence, and why.
+
+    A steady flow's bed must carry its material without divergence (solenoidal.py), so a
+    steady computed flow is projected when ``requested`` is ``"remove"``. A transient one's
+    divergence balances the change of its fill between phases; an analytic flow is the
+    exact field it is written from (and some, like the uniform flow, pass through the
+    grid's edge, which a steady bed's material does not).
+    """
+    if requested not in ("remove", "keep"):
+        raise ValueError(f"steady_divergence must be 'remove' or 'keep', not {requested!r}")
+    if n_phases > 1:
+        return "keep (transient flow)"
+    if "analytic" in flow.attrs:
+        return "keep (analytic flow)"
+    return requested
+
+
 class CyclicPhaseReader:
     """Serve prepared flow phases cyclically, reading each from the dataset lazily.
 
@@ -112,7 +131,15 @@ class CyclicPhaseReader:
         Prepare the next phase in a background thread.
     """
 
-    def __init__(self, flow, grid: AdeGrid, diffusion, memory_budget: float, prefetch=True):
+    def __init__(
+        self,
+        flow,
+        grid: AdeGrid,
+        diffusion,
+        memory_budget: float,
+        prefetch=True,
+        steady_divergence: str = "remove",
+    ):
         self.flow = flow
         self.grid = grid
         self.ndim = grid.ndim
@@ -136,6 +163,9 @@ class CyclicPhaseReader:
         self._lock = threading.Lock()
         self._pool = ThreadPoolExecutor(max_workers=1) if prefetch and self.n_phases > 2 else None
         self.phases_read = 0
+        self.divergence_treatment = _divergence_treatment(flow, self.n_phases, steady_divergence)
+        self.solenoidal = self.divergence_treatment == "remove"
+        self.divergence: dict = {}
 
     # reading and preparing -------------------------------------------------
     def _read(self, k: int):
@@ -177,6 +207,8 @@ class CyclicPhaseReader:
         material = fill > 0
         n = self.ndim
         velocities = tuple(arrays[name] for name in _VELOCITY_NAMES[:n])
+        if self.solenoidal:
+            velocities, self.divergence = remove_divergence(velocities, fill, self._flow_spacing)
         # every field of the phase on the flow grid, then onto the ADE grid in one pass
         sources = [extend_into_empty(v, material, self._vessel_flow) for v in velocities]
         if callable(self._diffusion):

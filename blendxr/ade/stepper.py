@@ -73,6 +73,7 @@ SCHEMA_KEYS = {
     "sampling_cell": "mixing.sampling_cell",
     "packing": "material.packing_fraction",
     "safety": "numerics.safety",
+    "steady_divergence": "numerics.steady_divergence",
     "memory_budget_mb": "numerics.memory_budget_mb",
     "stop_rsd": "mixing.stop_rsd",
     "stop_intensity": "mixing.stop_intensity",
@@ -115,6 +116,7 @@ class MixSettings:
     sampling_cell: float | None = None
     packing: float = _schema_default("packing")
     safety: float = _schema_default("safety")
+    steady_divergence: str = _schema_default("steady_divergence")
     dt: float | None = None
     memory_budget_mb: float = _schema_default("memory_budget_mb")
     progress: bool | None = None
@@ -208,6 +210,7 @@ def _settings_from(scene: Scene | None, overrides: dict) -> MixSettings:
             sampling_cell=mixing.get("sampling_cell"),
             packing=material["packing_fraction"],
             safety=numerics["safety"],
+            steady_divergence=numerics["steady_divergence"],
             memory_budget_mb=numerics["memory_budget_mb"],
             stop_rsd=mixing.get("stop_rsd"),
             stop_intensity=mixing.get("stop_intensity"),
@@ -450,7 +453,11 @@ class _Run:
         else:
             diffusion = None
         self.reader = CyclicPhaseReader(
-            flow, self.grid, diffusion, memory_budget=planned["cache_bytes"]
+            flow,
+            self.grid,
+            diffusion,
+            memory_budget=planned["cache_bytes"],
+            steady_divergence=s.steady_divergence,
         )
         self.vessel = self.reader.vessel.astype(np.uint8)
         self.scheme = schemes.make(s.scheme, self.grid, self.vessel, self.with_diffusion)
@@ -878,6 +885,8 @@ def _mixing_result(run: _Run, scene, wall: float, stopped_by: str) -> xr.Dataset
         "cell_updates": run.cell_updates,
         "cell_updates_per_s": run.cell_updates / wall if wall > 0 else 0.0,
         "phases_read": run.reader.phases_read,
+        "steady_divergence": run.reader.divergence_treatment,
+        **{f"flow_{k}": v for k, v in run.reader.divergence.items()},
         "diffusion_substeps_max": run.max_substeps,
         "mass_a_relative_drift": drift,
         "fill_mismatch_max": float(np.max(rec["fill_mismatch"])) if rec["fill_mismatch"] else 0.0,
