@@ -219,6 +219,24 @@ GROUPS["drum_flow_cell_lw400_k1_0"] = (
     {m: {**LOW_DIFFUSION, **v, "mixing.k1": 0.0} for m, v in DRUM_FLOW_CELLS.items()},
     "1.75mm",
 )
+# the same two with the steady flow's divergence kept as stored: what the projection
+# (numerics.steady_divergence) does to the answer at each flow cell
+GROUPS["drum_flow_cell_lw400_kept"] = (
+    "drum-calibration",
+    {
+        m: {**LOW_DIFFUSION, **v, "numerics.steady_divergence": "keep"}
+        for m, v in DRUM_FLOW_CELLS.items()
+    },
+    "1.75mm",
+)
+GROUPS["drum_flow_cell_lw400_k1_0_kept"] = (
+    "drum-calibration",
+    {
+        m: {**LOW_DIFFUSION, **v, "mixing.k1": 0.0, "numerics.steady_divergence": "keep"}
+        for m, v in DRUM_FLOW_CELLS.items()
+    },
+    "1.75mm",
+)
 for _case in ("tote-40-top-bottom", "tote-40-side-side", "tote-60-top-bottom",
               "tote-60-side-side"):  # fmt: skip
     GROUPS[f"{_case}_flow_cell"] = (
