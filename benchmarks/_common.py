@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -333,10 +334,19 @@ def write_atomic(path: Path, data: bytes | str) -> Path:
     return path
 
 
+def portable(text: str) -> str:
+    """``text`` with this checkout's and the flow cache's folders written as
+    ``$BLENDXR_CACHE`` and ``.``: committed results must not name the machine's paths."""
+    cache = str(flow_cache().resolve())
+    text = re.sub(r"[^\s\"'(]*/runs/cache", "$BLENDXR_CACHE", text.replace(cache, "$BLENDXR_CACHE"))
+    return text.replace(str(REPO.resolve()), ".")
+
+
 def write_json(name: str, payload: dict, directory: Path | None = None) -> Path:
-    """Write ``<directory>/<name>.json`` atomically (default directory: ``results/``)."""
+    """Write ``<directory>/<name>.json`` atomically (default directory: ``results/``),
+    with the machine's folders made portable."""
     text = json.dumps(payload, indent=2, sort_keys=False, default=_to_builtin) + "\n"
-    return write_atomic(Path(directory or RESULTS) / f"{name}.json", text)
+    return write_atomic(Path(directory or RESULTS) / f"{name}.json", portable(text))
 
 
 def cpu_label(info: dict | None) -> str:

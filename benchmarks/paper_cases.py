@@ -41,6 +41,7 @@ from _common import (  # noqa: E402
     machine,
     machine_line,
     merge_cases,
+    portable,
     sweep_report,
     table,
     write_atomic,
@@ -71,6 +72,8 @@ def _collect(case: str, out: Path) -> dict:
     for name in PICTURES:
         if (out / name).exists():
             shutil.copyfile(out / name, keep / name)
+    if (keep / "report.json").exists():  # the committed copy names no machine's paths
+        write_atomic(keep / "report.json", portable((keep / "report.json").read_text()))
     return {
         "report": report,
         "revolution": mixed["revolution"].values.tolist(),
