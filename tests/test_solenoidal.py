@@ -136,3 +136,19 @@ def test_the_mixing_run_projects_a_steady_computed_flow_and_records_it():
     assert removed["steady_divergence"] == "remove"
     assert removed["flow_divergence_after"] < removed["flow_divergence_before"]
     assert kept["steady_divergence"] == "keep" and "flow_divergence_before" not in kept
+
+
+def test_a_projection_cut_short_by_its_iteration_limit_says_so(monkeypatch):
+    from blendxr.ade import solenoidal
+
+    real = solenoidal.spl.lsmr
+
+    def capped(A, b, **kwargs):
+        return real(A, b, **{**kwargs, "maxiter": 2})
+
+    monkeypatch.setattr(solenoidal.spl, "lsmr", capped)
+    fill, _, _, h = disc_bed(n=24)
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=fill.shape), rng.normal(size=fill.shape)
+    with pytest.warns(RuntimeWarning, match="iteration limit"):
+        remove_divergence(u, fill, (h, h))

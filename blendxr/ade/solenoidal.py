@@ -37,6 +37,8 @@ between phases, and there the divergence balances the change of the fill.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
@@ -150,7 +152,16 @@ def remove_divergence(velocities, fill: np.ndarray, spacing) -> tuple[tuple, dic
     u_bed = [u.reshape(-1)[cells] for u in out]
     laplacian = sum(D @ G for _, D, G, _ in ops)
     div = divergence(u_bed)
-    p, _, iterations, *_ = spl.lsmr(laplacian, div, atol=1e-12, btol=1e-12, maxiter=20 * cells.size)
+    p, stop, iterations, *_ = spl.lsmr(
+        laplacian, div, atol=1e-12, btol=1e-12, maxiter=20 * cells.size
+    )
+    if stop == 7:  # LSMR's iteration limit: the projection is partial, say so
+        warnings.warn(
+            f"the steady flow's divergence projection stopped at its iteration limit "
+            f"({iterations}) on {cells.size} bed cells; the divergence is reduced, not removed",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     projected = [u - A @ (G @ p) for (_, _, G, A), u in zip(ops, u_bed, strict=True)]
     for flat, u in zip(out, projected, strict=True):
         flat.reshape(-1)[cells] = u
