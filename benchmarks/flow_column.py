@@ -18,7 +18,11 @@ largest speed at the end is reported). Variants: ``mu_i``, the μ(I) friction
 (``material.friction_angle_limit_deg = 37.7``, 1 mm grains, as flow_work_precision.py's
 runs); ``no_projection``, the flow before the projection and ψ = 0 were the defaults
 (no projection, Table 1's ψ = 0.1°); ``rough_floor``, the floor's friction coefficient
-tan 27.1° (as rough as the bed's internal friction) instead of Table 1's 0.324. Cells
+tan 27.1° (as rough as the bed's internal friction) instead of Table 1's 0.324;
+``gate``, the experiment's start: the column settled under gravity behind a gate (the
+right wall of a box as wide as the column) and released at rest into the long box;
+``no_lost_contact`` and ``poisson_0.3`` (ν = 0.3 instead of Table 1's 0.065), which
+test two suspected causes of the a = 1 column's long runout. Cells
 5, 2.5 and 1.25 mm (20, 40 and 80 cells across the column). The front is the 99.9th
 percentile of the particles' x (a few particles thrown ahead of the deposit do not
 count); the height the largest y at the back wall.
@@ -35,6 +39,7 @@ import os
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
+import copy  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -66,7 +71,17 @@ VARIANTS = {
     },
     # a floor as rough as the bed is frictional (tan 27.1 deg), as a base of glued grains
     "rough_floor": {"material": {"wall_friction": 0.512}},
+    # the experiment's start: the column settled under gravity behind a gate, then the
+    # gate removed (the other variants switch gravity on at once on a stress-free column)
+    "gate": {},
+    "no_lost_contact": {"solver": {"lost_contact": False}},
+    # a stiffer lateral response than Table 1's loose bed (nu = 0.065): K0 = nu / (1 - nu)
+    # = 0.43 above the active Rankine ratio 0.37 instead of 0.07 below it
+    "poisson_0.3": {"material": {"poisson_ratio": 0.3}},
 }
+#: variants that start from a column settled behind a gate, and the settling time [s]
+GATED = {"gate"}
+GATE_SETTLE = 0.3
 #: the thickness at which the deposit's front is read on every grid: one cell of the
 #: coarsest (a layer thinner than a cell is below that grid's resolution)
 RESOLVED_THICKNESS = max(CELLS)
@@ -108,13 +123,41 @@ def deposit_profile(x: np.ndarray, bin_width: float) -> tuple[np.ndarray, np.nda
     return (edges + 0.5 * bin_width)[keep], tops[keep]
 
 
+def gated_release(spec: dict) -> tuple[np.ndarray, np.ndarray, int]:
+    """Settle the column in a box as wide as itself (the gate its right wall) with
+    gravity ramped over ``GATE_SETTLE``, then release it into the long box at rest.
+
+    Returns the final positions, velocities and the steps of the release."""
+    from blendxr.flow.solver import FlowSimulation
+
+    gate = copy.deepcopy(spec)
+    box = [WIDTH, spec["vessel"]["size"][1]]
+    gate["vessel"].update(size=box, center=[b / 2 for b in box])
+    gate["solver"]["settle_time"] = GATE_SETTLE
+    behind = FlowSimulation(gate)
+    behind.run(until=GATE_SETTLE, progress=False)
+    released = FlowSimulation(spec)
+    state = behind.particles.arrays()
+    if state["x"].shape != released.particles.x.shape:
+        raise RuntimeError("the gated and the released column were seeded differently")
+    state["v"] = np.zeros_like(state["v"])
+    state["C"] = np.zeros_like(state["C"])
+    released.particles.load(state)
+    released.run(progress=False)
+    return released.particles.x, released.particles.v, released.steps
+
+
 def run_case(name: str) -> dict:
     variant, a, cell = CASES[name]
     started = time.perf_counter()
-    flow, particles = bx.solve_flow(scene(a, cell, variant), particles=True, progress=False)
+    spec = scene(a, cell, variant)
+    if variant in GATED:
+        x, v, steps = gated_release(spec)
+    else:
+        flow, particles = bx.solve_flow(spec, particles=True, progress=False)
+        x, v = particles["position"].values, particles["velocity"].values
+        steps = int(flow.attrs["steps"])
     wall = time.perf_counter() - started
-    x = particles["position"].values
-    v = particles["velocity"].values
     front = float(np.quantile(x[:, 0], 0.999))
     back = x[:, 0] < 0.1 * WIDTH
     centres, tops = deposit_profile(x, cell)
@@ -128,7 +171,7 @@ def run_case(name: str) -> dict:
         "height": float(x[back, 1].max()) / (a * WIDTH),
         "speed_max_end_m_s": float(np.abs(v).max()),
         "particles": int(len(x)),
-        "steps": int(flow.attrs["steps"]),
+        "steps": steps,
         "wall_s": wall,
         "profile_x_m": centres.tolist(),
         "profile_top_m": tops.tolist(),
@@ -208,7 +251,11 @@ def report(results: dict, info: dict) -> str:
         "default: the scene defaults (rate-independent Mohr–Coulomb, Table 1 with c = 0, "
         "the density projection every 10 steps, ψ = 0); mu_i: the same with μ(I), μ2 = "
         "tan 37.7°, 1 mm grains; no_projection: no projection and Table 1's ψ = 0.1°, "
-        "the defaults before; rough_floor: wall friction tan 27.1° = 0.512.\n\n"
+        "the defaults before; rough_floor: wall friction tan 27.1° = 0.512; gate: the "
+        f"experiment's start, the column settled behind a gate ({GATE_SETTLE:g} s, gravity "
+        "ramped) and released at rest (the others switch gravity on at once on a "
+        "stress-free column); no_lost_contact: `solver.lost_contact = false`; "
+        "poisson_0.3: ν = 0.3 instead of Table 1's 0.065.\n\n"
         + table(
             [
                 "case",
@@ -245,7 +292,9 @@ def report(results: dict, info: dict) -> str:
 
 
 def plot(results: dict) -> None:
-    fig, axes = plt.subplots(len(VARIANTS), len(ASPECTS), figsize=(11, 8), squeeze=False)
+    fig, axes = plt.subplots(
+        len(VARIANTS), len(ASPECTS), figsize=(11, 2.4 * len(VARIANTS)), squeeze=False
+    )
     for row, variant in enumerate(VARIANTS):
         for col, a in enumerate(ASPECTS):
             ax = axes[row, col]

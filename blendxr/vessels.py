@@ -9,7 +9,8 @@ Two faces of one geometry:
 - for the MPM kernels, which take plain arrays only, a vessel is a pair
   ``(kind, params)`` (an integer code and a float64 array) read by the compiled,
   allocation-free :func:`sdf_point` and :func:`sdf_normal`;
-- for Python, the frozen dataclasses :class:`Drum`, :class:`Tote` and :class:`Box` carry
+- for Python, the frozen dataclasses :class:`Drum`, :class:`Tote`, :class:`Box` and
+  :class:`Silo` (a box parted by a floor with a slot, for the discharge benchmark) carry
   the dimensions, validate them, and give ``kind``, ``params``, vectorised ``sdf``,
   exact ``volume``, ``bounds`` and ``contains``.
 
@@ -35,9 +36,12 @@ __all__ = [
     "TOTE_3D",
     "BOX_2D",
     "BOX_3D",
+    "SILO_2D",
+    "SILO_3D",
     "Drum",
     "Tote",
     "Box",
+    "Silo",
     "sdf_point",
     "sdf_normal",
     "vessel_from_scene",
@@ -54,6 +58,8 @@ TOTE_2D = 3
 TOTE_3D = 4
 BOX_2D = 5
 BOX_3D = 6
+SILO_2D = 7
+SILO_3D = 8
 
 # ---------------------------------------------------------------------------------------
 # Compiled SDFs. Each shape returns (value, nx, ny, nz) as a tuple: tuples live in
@@ -110,6 +116,39 @@ def _box(params, x, y, z, is3d):
     ax, ay, az = max(dx, 0.0), max(dy, 0.0), max(dz, 0.0)
     d = math.sqrt(ax * ax + ay * ay + az * az)
     return d, ax * sx / d, ay * sy / d, az * sz / d
+
+
+@njit(cache=True)
+def _slab(qx, qy, hx, hy):
+    # exact SDF and outward normal of an axis-aligned rectangle (q from its centre), 2-D
+    sx, sy = _sign(qx), _sign(qy)
+    dx, dy = abs(qx) - hx, abs(qy) - hy
+    if dx <= 0.0 and dy <= 0.0:
+        if dx >= dy:
+            return dx, sx, 0.0
+        return dy, 0.0, sy
+    ax, ay = max(dx, 0.0), max(dy, 0.0)
+    d = math.sqrt(ax * ax + ay * ay)
+    return d, ax * sx / d, ay * sy / d
+
+
+@njit(cache=True)
+def _silo(params, x, y, z, is3d):
+    # the box minus the two halves of its floor plate (solids spanning z): the interior
+    # distance max(d_box, -d_left, -d_right) is exact inside, where the kernels need it
+    d, nx, ny, nz = _box(params, x, y, z, is3d)
+    k = 6 if is3d else 4  # the slot's values follow the box's centre and half edges
+    cx, hx = params[0], params[3] if is3d else params[2]
+    half_slot, top, thick = params[k], params[k + 1], params[k + 2]
+    # each half reaches a plate's thickness past the side wall, so it joins the wall
+    wx = 0.5 * (hx + thick - half_slot)
+    qy = y - (top - 0.5 * thick)
+    for side in (-1.0, 1.0):
+        qx = x - (cx + side * (half_slot + wx))
+        dp, px, py = _slab(qx, qy, wx, 0.5 * thick)
+        if -dp > d:
+            d, nx, ny, nz = -dp, -px, -py, 0.0
+    return d, nx, ny, nz
 
 
 @njit(cache=True)
@@ -193,6 +232,10 @@ def _sdf_grad(kind, params, x, y, z):
         return _box(params, x, y, z, False)
     if kind == BOX_3D:
         return _box(params, x, y, z, True)
+    if kind == SILO_2D:
+        return _silo(params, x, y, z, False)
+    if kind == SILO_3D:
+        return _silo(params, x, y, z, True)
     return math.nan, 0.0, 0.0, 0.0  # an unknown kind shows up as NaN, never as a wall
 
 
@@ -672,7 +715,96 @@ class Box(_Shape):
         return self.volume / self.size[1] * min(max(y - lo, 0.0), self.size[1])
 
 
-Vessel = Drum | Tote | Box
+@dataclass(frozen=True)
+class Silo(Box):
+    """A flat-bottomed silo over a bin: a box parted by a horizontal floor plate with a
+    centred slot, through which the bed discharges into the bin below.
+
+    The slot spans the whole box along z (a plane slot in 3-D). The SDF is exact inside
+    the vessel; the plate's two halves join the side walls.
+
+    Parameters
+    ----------
+    size, center
+        As for :class:`Box`: the outer box, m.
+    orifice : float
+        Width of the slot along x, m, > 0 and < the box's width.
+    floor_height : float
+        Height of the plate's top face above the box's bottom, m.
+    floor_thickness : float
+        Thickness of the plate, m, > 0; the plate must fit inside the box, and should be
+        a few background cells thick so that no cell straddles both of its faces.
+    """
+
+    orifice: float = 0.0
+    floor_height: float = 0.0
+    floor_thickness: float = 0.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        width, height = self.size[0], self.size[1]
+        orifice = _positive("orifice", self.orifice)
+        if orifice >= width:
+            raise ValueError(
+                f"orifice = {self.orifice!r} is out of range; allowed: > 0 and < the box's "
+                f"width {width!r}"
+            )
+        thick = _positive("floor_thickness", self.floor_thickness)
+        top = _number("floor_height", self.floor_height)
+        if not thick < top < height:
+            raise ValueError(
+                f"floor_height = {self.floor_height!r} is out of range; allowed: > "
+                f"floor_thickness ({thick!r}) and < the box's height ({height!r})"
+            )
+        object.__setattr__(self, "orifice", orifice)
+        object.__setattr__(self, "floor_height", top)
+        object.__setattr__(self, "floor_thickness", thick)
+
+    @property
+    def kind(self) -> int:
+        """Vessel code for the compiled SDF."""
+        return SILO_3D if self.ndim == 3 else SILO_2D
+
+    @property
+    def floor_top(self) -> float:
+        """y of the plate's top face in the vessel frame, m."""
+        return self.center[1] - 0.5 * self.size[1] + self.floor_height
+
+    @property
+    def params(self) -> np.ndarray:
+        """The box's centre and half edges, then half the slot, the plate's top y and its
+        thickness."""
+        extra = (0.5 * self.orifice, self.floor_top, self.floor_thickness)
+        return np.array(self.center + tuple(0.5 * s for s in self.size) + extra)
+
+    @property
+    def _plate_area(self) -> float:
+        return (self.size[0] - self.orifice) * self.floor_thickness
+
+    @property
+    def volume(self) -> float:
+        """The box's volume less the plate's (m² in 2-D, m³ in 3-D)."""
+        depth = self.size[2] if self.ndim == 3 else 1.0
+        return float(np.prod(self.size)) - self._plate_area * depth
+
+    def describe(self) -> str:
+        """One line: the box, the slot and the floor."""
+        return (
+            f"{super().describe()}, parted by a {1e3 * self.floor_thickness:g} mm floor "
+            f"{1e3 * self.floor_height:g} mm above its bottom with a "
+            f"{1e3 * self.orifice:g} mm slot"
+        )
+
+    def _volume_below(self, y: float) -> float:
+        top = self.floor_top
+        plate = min(max(y - (top - self.floor_thickness), 0.0), self.floor_thickness)
+        depth = self.size[2] if self.ndim == 3 else 1.0
+        lo = self.center[1] - 0.5 * self.size[1]
+        box = self.size[0] * depth * min(max(y - lo, 0.0), self.size[1])
+        return box - (self.size[0] - self.orifice) * plate * depth
+
+
+Vessel = Drum | Tote | Box | Silo
 
 # ---------------------------------------------------------------------------------------
 # From a scene
@@ -704,11 +836,12 @@ def vessel_from_scene(scene: Mapping) -> Vessel:
         ``kind`` (drum, tote, box; default tote), ``ndim`` (2, 3; default 3); drum:
         ``diameter``, ``length`` (3-D; ``width`` when absent); tote: ``width``,
         ``straight_height``, ``hopper_angle_deg``, ``outlet_width``, ``axis_offset``,
-        ``tilt_deg`` (each defaulting to DESIGN §7); box: ``size``, ``center``.
+        ``tilt_deg`` (each defaulting to DESIGN §7); box: ``size``, ``center``; silo: a
+        box's keys and ``orifice``, ``floor_height``, ``floor_thickness``.
 
     Returns
     -------
-    Drum, Tote or Box
+    Drum, Tote, Box or Silo
 
     Raises
     ------
@@ -725,12 +858,22 @@ def vessel_from_scene(scene: Mapping) -> Vessel:
         return Drum(_require(section, "diameter", "drum"), ndim=ndim, length=length)
     if kind == "tote":
         return Tote(ndim=ndim, **{k: section[k] for k in _TOTE_KEYS if k in section})
-    if kind == "box":
-        box = Box(_require(section, "size", "box"), section.get("center"))
+    if kind in ("box", "silo"):
+        size = _require(section, "size", kind)
+        if kind == "box":
+            box = Box(size, section.get("center"))
+        else:
+            box = Silo(
+                size,
+                section.get("center"),
+                orifice=_require(section, "orifice", kind),
+                floor_height=_require(section, "floor_height", kind),
+                floor_thickness=_require(section, "floor_thickness", kind),
+            )
         if box.ndim != ndim:
             raise ValueError(f"vessel.size: {box.ndim} edge lengths given for ndim = {ndim}")
         return box
-    raise ValueError(f"vessel.kind = {kind!r} is not one of ['drum', 'tote', 'box']")
+    raise ValueError(f"vessel.kind = {kind!r} is not one of ['drum', 'tote', 'box', 'silo']")
 
 
 # ---------------------------------------------------------------------------------------

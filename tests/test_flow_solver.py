@@ -565,3 +565,37 @@ def test_mu_of_i_is_off_unless_the_scene_asks_for_it():
     assert i0 == 0.279
     density = scene["material"].get("density", 1500.0)
     assert scale == pytest.approx(0.002 * math.sqrt(density / 0.6), rel=1e-14)
+
+
+def test_a_silo_discharges_through_its_slot_and_nothing_enters_its_floor():
+    """The silo of the discharge benchmark, small: the bed drains through the slot into
+    the bin, the bin's material lies under the slot, and no particle ends in a wall."""
+    width, bin_h, fill, slot, cell = 0.08, 0.08, 0.06, 0.03, 0.005
+    height = bin_h + fill + 0.02
+    scene = {
+        "name": "silo",
+        "vessel": {
+            "kind": "silo",
+            "ndim": 2,
+            "size": [width, height],
+            "center": [0.0, height / 2],
+            "orifice": slot,
+            "floor_height": bin_h,
+            "floor_thickness": 2 * cell,
+        },  # fmt: skip
+        "operation": {"rpm": 0.0, "duration": 0.25},
+        "material": {"cohesion": 0.0},
+        "fill": {"box": [[-width / 2, width / 2], [bin_h, bin_h + fill]]},
+        "flow": {"cell": cell},
+        "solver": {"stiffness_scaling": 100.0, "settle_time": 0.0},
+    }
+    sim = FlowSimulation(scene)
+    sim.run(progress=False)
+    x = sim.particles.x
+    below = x[:, 1] < bin_h - 2 * cell
+    assert 0.05 < below.mean() < 0.9
+    # the stream falls straight from the slot: nothing has spread sideways beyond it yet
+    # at the level of the floor's underside
+    stream = below & (x[:, 1] > bin_h - 4 * cell)
+    assert np.all(np.abs(x[stream, 0]) < slot / 2 + cell)
+    assert np.max(sim.vessel.sdf(x)) < 0.25 * cell

@@ -31,8 +31,16 @@ VESSELS = {
     "tote-3d-tilted": vs.Tote(tilt_deg=20.0, axis_offset=0.03),
     "box-2d": vs.Box((0.2, 0.1), (0.01, -0.02)),
     "box-3d": vs.Box((0.2, 0.1, 0.3), (0.01, -0.02, 0.03)),
+    "silo-2d": vs.Silo(
+        (0.12, 0.3), (0.01, 0.1), orifice=0.03, floor_height=0.12, floor_thickness=0.01
+    ),  # fmt: skip
+    "silo-3d": vs.Silo(
+        (0.12, 0.3, 0.05), (0.0, 0.0, 0.01), orifice=0.02, floor_height=0.1, floor_thickness=0.02
+    ),  # fmt: skip
 }
 EXACT = ["drum-2d", "drum-3d", "box-2d", "box-3d"]
+#: exact inside the vessel only
+EXACT_INSIDE = ["tote-2d", "tote-3d", "tote-3d-tilted", "silo-2d", "silo-3d"]
 
 
 def _random_points(vessel, n=400, margin=0.05, seed=1):
@@ -107,6 +115,43 @@ def test_box_sdf_exact_values():
     flat = VESSELS["box-2d"]
     pts = np.array(flat.center) + np.array([[0, 0], [-0.1, 0.01], [-0.13, -0.09]])
     np.testing.assert_allclose(flat.sdf(pts), [-0.05, 0, 0.05], atol=1e-15)
+
+
+def _rectangle_distance(p, lo, hi):
+    """Euclidean distance from points p (N, 2) to the solid rectangle [lo, hi]."""
+    gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+    return np.linalg.norm(gap, axis=-1)
+
+
+@pytest.mark.parametrize("name", ["silo-2d", "silo-3d"])
+def test_silo_sdf_is_the_distance_to_the_nearest_wall_inside(name):
+    """Inside, -sdf is the distance to the nearest of the outer walls and the two halves of
+    the floor, computed here from the geometry directly."""
+    silo = VESSELS[name]
+    pts = _random_points(silo, n=6000, margin=0.0, seed=4)
+    lo, hi = (np.asarray(b) for b in silo.bounds)
+    d = silo.sdf(pts)
+    xy = pts[:, :2]
+    top, bottom = silo.floor_top, silo.floor_top - silo.floor_thickness
+    cx, half = silo.center[0], silo.orifice / 2
+    left = _rectangle_distance(xy, np.array([lo[0], bottom]), np.array([cx - half, top]))
+    right = _rectangle_distance(xy, np.array([cx + half, bottom]), np.array([hi[0], top]))
+    walls = np.min(np.concatenate([pts - lo, hi - pts], axis=1), axis=1)
+    in_plate = (left == 0) | (right == 0)
+    inside = ~in_plate & np.all((pts > lo) & (pts < hi), axis=1)
+    assert 0.5 < inside.mean() < 1.0
+    np.testing.assert_array_equal(d < 0, inside)
+    truth = np.minimum(walls, np.minimum(left, right))
+    np.testing.assert_allclose(-d[inside], truth[inside], atol=1e-15)
+
+
+def test_silo_sdf_exact_values():
+    # x in [-0.05, 0.07], the floor y in [0.06, 0.07], the slot |x - 0.01| < 0.015
+    silo = VESSELS["silo-2d"]
+    pts = np.array([[0.015, 0.065], [0.0, 0.065], [-0.03, 0.065], [-0.03, 0.08], [0.01, 0.09]])
+    want = [-0.01, -0.005, 0.005, -0.01, -np.hypot(0.015, 0.02)]
+    np.testing.assert_allclose(silo.sdf(pts), want, atol=1e-15)
+    np.testing.assert_allclose(silo.normal(pts[:2]), [[1.0, 0.0], [-1.0, 0.0]], atol=1e-15)
 
 
 def test_tote_sdf_values_in_the_body_frame():
@@ -191,12 +236,12 @@ def test_normals_are_unit_and_equal_the_finite_difference_gradient(name):
     np.testing.assert_allclose(np.linalg.norm(central[smooth], axis=-1), 1.0, atol=1e-5)
 
 
-@pytest.mark.parametrize("name", EXACT + ["tote-2d", "tote-3d", "tote-3d-tilted"])
+@pytest.mark.parametrize("name", EXACT + EXACT_INSIDE)
 def test_stepping_back_along_the_normal_lands_on_the_wall(name):
     """The defining property of an exact SDF: p − sdf(p)·n(p) is on the wall."""
     vessel = VESSELS[name]
     pts = _random_points(vessel, n=1000, seed=3)
-    if name.startswith("tote"):  # exact inside only
+    if name in EXACT_INSIDE:
         pts = pts[vessel.sdf(pts) < 0]
     foot = pts - vessel.sdf(pts)[:, None] * vessel.normal(pts)
     np.testing.assert_allclose(vessel.sdf(foot), 0.0, atol=1e-12)
@@ -217,6 +262,11 @@ def test_volumes_against_formulas():
     assert VESSELS["drum-2d"].volume == pytest.approx(math.pi * 0.075**2, rel=1e-14)
     assert VESSELS["drum-3d"].volume == pytest.approx(math.pi * 0.1**2 * 0.1, rel=1e-14)
     assert VESSELS["box-3d"].volume == pytest.approx(0.2 * 0.1 * 0.3, rel=1e-14)
+    plate = (0.12 - 0.03) * 0.01
+    assert VESSELS["silo-2d"].volume == pytest.approx(0.12 * 0.3 - plate, rel=1e-14)
+    assert vs.volume_below(VESSELS["silo-2d"], 0.065) == pytest.approx(
+        0.12 * 0.115 - (0.12 - 0.03) * 0.005, rel=1e-14
+    )
     # a rigid motion keeps the volume
     assert VESSELS["tote-3d-tilted"].volume == pytest.approx(tote.volume, rel=1e-14)
 
@@ -362,6 +412,18 @@ def test_tilt_turns_the_symmetry_axis_towards_z():
         (lambda: vs.Box((0.1, 0.0)), "size"),
         (lambda: vs.Box((0.1,)), "size"),
         (lambda: vs.Box((0.1, 0.2), (0.0, 0.0, 0.0)), "center"),
+        (
+            lambda: vs.Silo((0.1, 0.2), orifice=0.1, floor_height=0.1, floor_thickness=0.01),
+            "orifice",
+        ),
+        (
+            lambda: vs.Silo((0.1, 0.2), orifice=0.02, floor_height=0.2, floor_thickness=0.01),
+            "floor_height",
+        ),
+        (
+            lambda: vs.Silo((0.1, 0.2), orifice=0.02, floor_height=0.1, floor_thickness=0.0),
+            "floor_thickness",
+        ),
     ],
 )
 def test_bad_dimensions_raise_naming_the_parameter(make, key):
@@ -373,6 +435,7 @@ def test_describe_names_kind_and_size():
     assert "tote" in VESSELS["tote-3d"].describe() and "14.02 L" in VESSELS["tote-3d"].describe()
     assert "150 mm" in VESSELS["drum-2d"].describe()
     assert "box" in VESSELS["box-2d"].describe()
+    assert "30 mm slot" in VESSELS["silo-2d"].describe()
 
 
 def _scene(vessel, **sections):
@@ -392,6 +455,10 @@ def test_vessels_from_scenes():
     assert tote == vs.Tote(ndim=2, axis_offset=0.02) and tote.kind == vs.TOTE_2D
     box = vs.vessel_from_scene(_scene({"kind": "box", "ndim": 2, "size": [0.2, 0.1]}))
     assert box == vs.Box((0.2, 0.1)) and box.kind == vs.BOX_2D
+    silo = {"kind": "silo", "ndim": 2, "size": [0.12, 0.3], "center": [0.01, 0.1],
+            "orifice": 0.03, "floor_height": 0.12, "floor_thickness": 0.01}  # fmt: skip
+    assert vs.vessel_from_scene(_scene(silo)) == VESSELS["silo-2d"]
+    assert vs.vessel_from_scene(_scene(silo)).kind == vs.SILO_2D
 
 
 @pytest.mark.parametrize(
@@ -404,6 +471,16 @@ def test_vessels_from_scenes():
         ({"kind": "box", "ndim": 2, "size": [0.2, 0.1], "center": [0.0]}, "center"),
         ({"kind": "tote", "ndim": 2, "tilt_deg": 10.0}, "tilt_deg"),
         ({"kind": "tote", "outlet_width": 0.5}, "outlet_width"),
+        (
+            {
+                "kind": "silo",
+                "ndim": 2,
+                "size": [0.2, 0.1],
+                "floor_height": 0.05,
+                "floor_thickness": 0.01,
+            },
+            "orifice",
+        ),  # fmt: skip
         ({"kind": "cone"}, "kind"),
     ],
 )
