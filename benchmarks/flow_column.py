@@ -292,24 +292,30 @@ def report(results: dict, info: dict) -> str:
 
 
 def plot(results: dict) -> None:
-    fig, axes = plt.subplots(
-        len(VARIANTS), len(ASPECTS), figsize=(11, 2.4 * len(VARIANTS)), squeeze=False
-    )
-    for row, variant in enumerate(VARIANTS):
-        for col, a in enumerate(ASPECTS):
-            ax = axes[row, col]
-            ax.plot([0, WIDTH, WIDTH], [a * WIDTH] * 2 + [0], "k:", lw=1, label="column")
-            runout, _ = published(a)
-            ax.axvline(WIDTH * (1 + runout), color="k", lw=1, label="published front")
-            ax.axhline(RESOLVED_THICKNESS, color="0.6", lw=0.8, ls="--", label="resolved front")
-            for cell in CELLS:
-                r = results.get(f"{variant}_a{a:g}_{cell * 1000:g}mm")
-                if r:
-                    ax.plot(r["profile_x_m"], r["profile_top_m"], label=f"{cell * 1000:g} mm")
-            ax.set_title(f"{variant}, a = {a:g}", fontsize=9)
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("deposit top (m)")
-            ax.legend(fontsize=7)
+    """One panel per aspect ratio: every variant's deposit at its finest cell, and the
+    default's at every cell (dashed)."""
+    fig, axes = plt.subplots(1, len(ASPECTS), figsize=(12, 4.2), squeeze=False)
+    for col, a in enumerate(ASPECTS):
+        ax = axes[0, col]
+        ax.plot([0, WIDTH, WIDTH], [a * WIDTH] * 2 + [0], "k:", lw=1, label="column")
+        runout, _ = published(a)
+        ax.axvline(WIDTH * (1 + runout), color="k", lw=1, label="published front")
+        for cell in CELLS[:-1]:
+            r = results.get(f"default_a{a:g}_{cell * 1000:g}mm")
+            if r:
+                ax.plot(r["profile_x_m"], r["profile_top_m"], "--", lw=0.8, color="0.5",
+                        label=f"default, {cell * 1000:g} mm")  # fmt: skip
+        for variant in VARIANTS:
+            runs = [(c, results.get(f"{variant}_a{a:g}_{c * 1000:g}mm")) for c in CELLS]
+            runs = [(c, r) for c, r in runs if r]
+            if runs:
+                cell, r = runs[-1]
+                ax.plot(r["profile_x_m"], r["profile_top_m"], lw=1.2,
+                        label=f"{variant}, {cell * 1000:g} mm")  # fmt: skip
+        ax.set_title(f"a = {a:g}", fontsize=10)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("deposit top (m)")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(RESULTS / f"{NAME}.png", dpi=110)
     plt.close(fig)
