@@ -10,6 +10,7 @@ import datetime as _dt
 import fcntl
 import hashlib
 import json
+import math
 import os
 import platform
 import re
@@ -490,3 +491,38 @@ def sweep_report(title: str, info: dict, result, headers: list[str], rows: list[
             "",
         ]  # fmt: skip
     )
+
+
+def _halving_differences(values: list[float]) -> tuple[float, float] | None:
+    """The two successive differences of three values on halving cells, or None when
+    there are not three values or the sequence is flat or not monotone."""
+    if len(values) != 3:
+        return None
+    d1, d2 = values[1] - values[0], values[2] - values[1]
+    if d1 == 0 or d2 == 0 or d1 * d2 < 0:
+        return None
+    return d1, d2
+
+
+def three_cell_order(values: list[float]) -> str:
+    """Observed order of convergence of three values on cells halving each time, as text:
+    "" when it cannot be read, "none (not monotone)" when the values turn back."""
+    diffs = _halving_differences(values)
+    if diffs is None:
+        if len(values) == 3 and (values[1] - values[0]) * (values[2] - values[1]) < 0:
+            return "none (not monotone)"
+        return ""
+    return f"{math.log2(abs(diffs[0] / diffs[1])):.2f}"
+
+
+def richardson_limit(values: list[float]) -> float:
+    """The h → 0 limit of three values on halving cells at their observed order
+    (Richardson extrapolation); NaN where the values are not monotone or the observed
+    order is not positive (the differences do not shrink), since no limit can be read."""
+    diffs = _halving_differences(values)
+    if diffs is None:
+        return float("nan")
+    ratio = diffs[0] / diffs[1]
+    if ratio <= 1.0:
+        return float("nan")
+    return float(values[2] + diffs[1] / (ratio - 1.0))

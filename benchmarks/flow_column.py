@@ -49,9 +49,10 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import RESULTS, machine_line, run_cases, table  # noqa: E402
+from _common import RESULTS, machine_line, run_cases, table, three_cell_order  # noqa: E402
 
 import blendxr as bx  # noqa: E402
+from blendxr.plot import save_figure  # noqa: E402
 
 NAME = "flow_column"
 WIDTH = 0.1  # L0 [m]
@@ -201,16 +202,6 @@ def summary(name: str, r: dict) -> str:
     )
 
 
-def _order(values: list[float]) -> str:
-    """Observed order of convergence over three cells halving each time."""
-    if len(values) != 3:
-        return ""
-    d1, d2 = values[1] - values[0], values[2] - values[1]
-    if d1 == 0 or d2 == 0 or d1 * d2 < 0:
-        return "none (not monotone)" if d1 * d2 < 0 else ""
-    return f"{np.log2(abs(d1 / d2)):.2f}"
-
-
 def report(results: dict, info: dict) -> str:
     rows, trend = [], []
     for name, (variant, a, cell) in CASES.items():
@@ -233,8 +224,8 @@ def report(results: dict, info: dict) -> str:
                 runs = [results[n]["runout"] for n in names]
                 resolved = [resolved_runout(results[n]) for n in names]
                 trend.append([variant, f"{a:g}", " → ".join(f"{v:.2f}" for v in runs),
-                              _order(runs), " → ".join(f"{v:.2f}" for v in resolved),
-                              _order(resolved), f"{published(a)[0]:.2f}"])  # fmt: skip
+                              three_cell_order(runs), " → ".join(f"{v:.2f}" for v in resolved),
+                              three_cell_order(resolved), f"{published(a)[0]:.2f}"])  # fmt: skip
     return (
         f"<!-- written by benchmarks/{NAME}.py -->\n"
         "# Collapse of a granular column (2-D, against a wall)\n\n"
@@ -317,8 +308,7 @@ def plot(results: dict) -> None:
         ax.set_ylabel("deposit top (m)")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(RESULTS / f"{NAME}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, RESULTS / f"{NAME}.png")
 
 
 def main() -> None:
