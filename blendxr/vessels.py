@@ -711,8 +711,11 @@ class Box(_Shape):
         return f"{self.ndim}-D box, {edges} mm, centred at ({centre}) mm"
 
     def _volume_below(self, y: float) -> float:
+        # the box's own cross-section, not ``self.volume``: a subclass that takes volume
+        # out of the box (the silo's floor) subtracts its own share from this
         lo = self.center[1] - 0.5 * self.size[1]
-        return self.volume / self.size[1] * min(max(y - lo, 0.0), self.size[1])
+        section = float(np.prod(self.size)) / self.size[1]
+        return section * min(max(y - lo, 0.0), self.size[1])
 
 
 @dataclass(frozen=True)
@@ -778,14 +781,16 @@ class Silo(Box):
         return np.array(self.center + tuple(0.5 * s for s in self.size) + extra)
 
     @property
-    def _plate_area(self) -> float:
-        return (self.size[0] - self.orifice) * self.floor_thickness
+    def _plate_section(self) -> float:
+        """The plate's horizontal cross-section (a length in 2-D, an area in 3-D): the
+        volume it takes per unit height."""
+        depth = self.size[2] if self.ndim == 3 else 1.0
+        return (self.size[0] - self.orifice) * depth
 
     @property
     def volume(self) -> float:
         """The box's volume less the plate's (m² in 2-D, m³ in 3-D)."""
-        depth = self.size[2] if self.ndim == 3 else 1.0
-        return float(np.prod(self.size)) - self._plate_area * depth
+        return float(np.prod(self.size)) - self._plate_section * self.floor_thickness
 
     def describe(self) -> str:
         """One line: the box, the slot and the floor."""
@@ -796,12 +801,9 @@ class Silo(Box):
         )
 
     def _volume_below(self, y: float) -> float:
-        top = self.floor_top
-        plate = min(max(y - (top - self.floor_thickness), 0.0), self.floor_thickness)
-        depth = self.size[2] if self.ndim == 3 else 1.0
-        lo = self.center[1] - 0.5 * self.size[1]
-        box = self.size[0] * depth * min(max(y - lo, 0.0), self.size[1])
-        return box - (self.size[0] - self.orifice) * plate * depth
+        bottom = self.floor_top - self.floor_thickness
+        plate_below = min(max(y - bottom, 0.0), self.floor_thickness)
+        return super()._volume_below(y) - self._plate_section * plate_below
 
 
 Vessel = Drum | Tote | Box | Silo
@@ -818,6 +820,7 @@ _TOTE_KEYS = (
     "axis_offset",
     "tilt_deg",
 )
+_SILO_KEYS = ("orifice", "floor_height", "floor_thickness")
 
 
 def _require(section: Mapping, key: str, kind: str):
@@ -863,13 +866,8 @@ def vessel_from_scene(scene: Mapping) -> Vessel:
         if kind == "box":
             box = Box(size, section.get("center"))
         else:
-            box = Silo(
-                size,
-                section.get("center"),
-                orifice=_require(section, "orifice", kind),
-                floor_height=_require(section, "floor_height", kind),
-                floor_thickness=_require(section, "floor_thickness", kind),
-            )
+            floor = {key: _require(section, key, kind) for key in _SILO_KEYS}
+            box = Silo(size, section.get("center"), **floor)
         if box.ndim != ndim:
             raise ValueError(f"vessel.size: {box.ndim} edge lengths given for ndim = {ndim}")
         return box
