@@ -110,9 +110,8 @@ def trends(result) -> str:
     def listing(panel):
         key, values = PANELS[panel]
         name = key.split(".")[-1]
-        return ", ".join(f"{v:g}: {r:.3f}" for v, r in zip(values, at[panel], strict=True)) + (
-            f" ({name})"
-        )
+        pairs = ", ".join(f"{v:g}: {r:.3f}" for v, r in zip(values, at[panel], strict=True))
+        return f"{name} = {pairs}"
 
     def spread(panel):
         return (max(at[panel]) - min(at[panel])) / base
