@@ -2,7 +2,8 @@
 
 A user asks how many revolutions a blend needs to reach RSD 0.1 or 0.05. This benchmark
 measures how far that answer, and the RSD curve behind it, moves with every choice the
-user (or a scene) makes: the flow cell, the ADE cells, the scheme, the stiffness scaling
+user (or a scene) makes: the flow cell, the flow solver's time step (Courant number), the
+ADE cells, the scheme, the stiffness scaling
 (an unscaled run at a coarse cell), rate-independent Mohr-Coulomb against the optional
 mu(I) friction, the revolution of the flow that is repeated (2 against 3, and an average
 over three), and the density projection with no dilation (the defaults) against the
@@ -282,6 +283,18 @@ for _case in ("tote-40-top-bottom", "tote-60-top-bottom"):
         },
         "avg4-6_10mm",
     )
+
+# the flow solver's time step (solver.courant; dt = courant h / (c_p + |v|max)) on the
+# paper's 40 % top-bottom case at 10 mm: 0.2, 0.4 (the scenes' default, shared with the
+# flow-cell group's 10 mm member) and 0.8, against the smallest step
+GROUPS["tote-40-top-bottom_courant_10mm"] = (
+    "tote-40-top-bottom",
+    {
+        f"courant{c:g}_10mm": {"flow.cell": 0.01, **({} if c == 0.4 else {"solver.courant": c})}
+        for c in (0.2, 0.4, 0.8)
+    },
+    "courant0.2_10mm",
+)
 
 # the scheme and ADE cells on a paper case's flow (60 % top-bottom, 10 mm, the mean of
 # revolutions 4-6, shared with the revolution group): do the schemes meet there as

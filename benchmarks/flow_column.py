@@ -19,6 +19,8 @@ largest speed at the end is reported). Variants: ``mu_i``, the μ(I) friction
 runs); ``no_projection``, the flow before the projection and ψ = 0 were the defaults
 (no projection, Table 1's ψ = 0.1°); ``rough_floor``, the floor's friction coefficient
 tan 27.1° (as rough as the bed's internal friction) instead of Table 1's 0.324;
+``sticky_floor``, friction 1, on which the bed cannot slide (the no-slip base of
+continuum studies of the collapse), and ``mu_i_sticky_floor``, that floor with μ(I);
 ``gate``, the experiment's start: the column settled under gravity behind a gate (the
 right wall of a box as wide as the column) and released at rest into the long box;
 ``no_lost_contact`` and ``poisson_0.3`` (ν = 0.3 instead of Table 1's 0.065), which
@@ -72,6 +74,16 @@ VARIANTS = {
     },
     # a floor as rough as the bed is frictional (tan 27.1 deg), as a base of glued grains
     "rough_floor": {"material": {"wall_friction": 0.512}},
+    # a floor the bed cannot slide on (Coulomb friction 1, twice the bed's tan 27.1 deg):
+    # the no-slip base of continuum collapse studies
+    "sticky_floor": {"material": {"wall_friction": 1.0}},
+    "mu_i_sticky_floor": {
+        "material": {
+            "wall_friction": 1.0,
+            "friction_angle_limit_deg": 37.7,
+            "particle_diameter": 0.001,
+        },
+    },
     # the experiment's start: the column settled under gravity behind a gate, then the
     # gate removed (the other variants switch gravity on at once on a stress-free column)
     "gate": {},
@@ -242,11 +254,12 @@ def report(results: dict, info: dict) -> str:
         "default: the scene defaults (rate-independent Mohr–Coulomb, Table 1 with c = 0, "
         "the density projection every 10 steps, ψ = 0); mu_i: the same with μ(I), μ2 = "
         "tan 37.7°, 1 mm grains; no_projection: no projection and Table 1's ψ = 0.1°, "
-        "the defaults before; rough_floor: wall friction tan 27.1° = 0.512; gate: the "
-        f"experiment's start, the column settled behind a gate ({GATE_SETTLE:g} s, gravity "
-        "ramped) and released at rest (the others switch gravity on at once on a "
-        "stress-free column); no_lost_contact: `solver.lost_contact = false`; "
-        "poisson_0.3: ν = 0.3 instead of Table 1's 0.065.\n\n"
+        "the defaults before; rough_floor: wall friction tan 27.1° = 0.512; sticky_floor: "
+        "wall friction 1 (the bed cannot slide on the floor); mu_i_sticky_floor: both; "
+        "gate: the experiment's start, the column settled behind a gate "
+        f"({GATE_SETTLE:g} s, gravity ramped) and released at rest (the others switch "
+        "gravity on at once on a stress-free column); no_lost_contact: "
+        "`solver.lost_contact = false`; poisson_0.3: ν = 0.3 instead of Table 1's 0.065.\n\n"
         + table(
             [
                 "case",

@@ -23,8 +23,14 @@ Recommended default: the largest factor whose velocity change against the unscal
 stays within 5 % (``TOLERANCE``) for every material studied; the JSON and the printed
 tables state the rule.
 
+``--courant``: the time step's own error instead. The default material (Table 1's
+cohesion, ψ = 0) at E/10 runs with ``solver.courant`` 0.2, 0.4, 0.6, 0.8 and 1.0, each
+compared with the 0.2 run by the same measures, with the 0.2 run's change between its
+last two revolutions as the noise floor.
+
 Run: ``python benchmarks/flow_stiffness.py`` (about 20 minutes on 2 idle cores, most of
-it the three unscaled runs). Writes ``benchmarks/results/flow_stiffness.{json,md}``.
+it the three unscaled runs). Writes ``benchmarks/results/flow_stiffness.{json,md}``;
+``--courant`` (a few minutes) writes ``flow_stiffness_courant.{json,md}``.
 """
 
 from __future__ import annotations
@@ -54,7 +60,6 @@ from _common import (  # noqa: E402
     write_json,
 )
 
-from blendxr.flow import solver  # noqa: E402
 from blendxr.flow.diagnostics import layer_flux, surface_line, surface_velocity  # noqa: E402
 from blendxr.flow.solver import FlowSimulation  # noqa: E402
 
@@ -69,12 +74,19 @@ SETTLE_S = 0.3
 REVOLUTIONS = 3
 FACTORS = (1.0, 10.0, 30.0, 100.0)
 TOLERANCE = 0.05  # largest relative L2 velocity change accepted for the default
+COURANT = 0.4  # the scene default of solver.courant
+#: the Courant study: dt = courant h / (c_p + |v|max), on the default material (Table 1's
+#: cohesion, no dilation) at the Tote scenes' E/10, each against the smallest step
+COURANTS = (0.2, 0.4, 0.6, 0.8, 1.0)
+COURANT_MATERIAL = (87.0, 0.0)
+COURANT_FACTOR = 10.0
 FILL_MASK = 0.5
 
 
-def scene(factor: float, cohesion: float, dilation: float) -> dict:
+def scene(factor: float, cohesion: float, dilation: float, courant: float = COURANT) -> dict:
+    tag = "" if courant == COURANT else f"-courant{courant:g}"
     return {
-        "name": f"drum-2d-stiffness-{factor:g}-c{cohesion:g}-psi{dilation:g}",
+        "name": f"drum-2d-stiffness-{factor:g}-c{cohesion:g}-psi{dilation:g}{tag}",
         "vessel": {"kind": "drum", "ndim": 2, "diameter": DIAMETER},
         "operation": {"rpm": RPM},
         "fill": {"fraction": FILL},
@@ -85,6 +97,7 @@ def scene(factor: float, cohesion: float, dilation: float) -> dict:
             "settle_time": SETTLE_S,
             "revolutions": REVOLUTIONS,
             "checkpoint_every": 1e9,
+            "courant": courant,
         },
     }
 
@@ -99,14 +112,14 @@ def l2_change(v_ref, fill_ref, v, fill) -> dict:
     }
 
 
-def run(factor: float, cohesion: float, dilation: float) -> dict:
-    sim = FlowSimulation(scene(factor, cohesion, dilation))
+def run(factor: float, cohesion: float, dilation: float, courant: float = COURANT) -> dict:
+    sim = FlowSimulation(scene(factor, cohesion, dilation, courant))
     with Contention() as meter:
         started = time.perf_counter()
         sim.run(progress=False)
         wall = time.perf_counter() - started
     # the solver's own dataset, as solve_flow builds it
-    flow = solver.sim.dataset(wall=wall)
+    flow = sim.dataset(wall=wall)
     fill_last, vel_last, _ = sim.last.fields()
     fill_prev, vel_prev, _ = sim.previous.fields()
     line = surface_line(flow)
@@ -116,6 +129,7 @@ def run(factor: float, cohesion: float, dilation: float) -> dict:
         "cohesion_pa": cohesion,
         "dilation_angle_deg": dilation,
         "factor": factor,
+        "courant": courant,
         "youngs_modulus_pa": sim.material.effective_modulus,
         "p_wave_speed_m_s": sim.material.p_wave_speed,
         "dt_s": flow.attrs["dt_last_s"],
@@ -258,6 +272,118 @@ def study_table(entry: dict) -> str:
     )
 
 
+COURANT_RULE = (
+    "the largest Courant number whose relative L2 velocity change against the run at "
+    f"{COURANTS[0]:g} (cells with fill > {FILL_MASK} in both) is within that run's own "
+    f"change between its last two revolutions, or within {100 * TOLERANCE:g} %"
+)
+
+
+def courant_study() -> dict:
+    """Each Courant number on one material and factor, against the smallest step."""
+    cohesion, dilation = COURANT_MATERIAL
+    runs = []
+    for courant in COURANTS:
+        r = run(COURANT_FACTOR, cohesion, dilation, courant)
+        runs.append(r)
+        echo(
+            f"courant {courant:g}: dt {r['dt_s'] * 1e6:.1f} us, {r['steps']} steps, wall "
+            f"{r['wall_s']:.0f} s, angle {r['angle_deg']:.2f}, max surface speed "
+            f"{r['max_surface_speed_m_s']:.4f} m/s"
+        )
+    ref = runs[0]
+    fill_ref, vel_ref = ref["_fields"]
+    for r in runs:
+        fill, vel = r.pop("_fields")
+        r["against_smallest_step"] = l2_change(vel_ref, fill_ref, vel, fill)
+        r["angle_change_deg"] = r["angle_deg"] - ref["angle_deg"]
+        r["max_surface_speed_change"] = (
+            r["max_surface_speed_m_s"] / ref["max_surface_speed_m_s"] - 1
+        )
+        r["speed_up_wall"] = ref["wall_s"] / r["wall_s"]
+    noise = ref["revolution_to_revolution"]["relative_l2"]
+    bound = max(noise, TOLERANCE)
+    accepted = [r["courant"] for r in runs if r["against_smallest_step"]["relative_l2"] <= bound]
+    largest = max(accepted) if accepted else COURANTS[0]
+    return {
+        "label": _label(cohesion, dilation) + f", E/{COURANT_FACTOR:g}",
+        "runs": runs,
+        "noise_floor_relative_l2": noise,
+        "largest_accepted_courant": largest,
+        "verdict": (
+            f"By the rule ({COURANT_RULE}): courant = {largest:g}. Noise floor (the "
+            f"{COURANTS[0]:g} run's change between its last two revolutions): "
+            f"{100 * noise:.2f} %."
+        ),
+    }
+
+
+def courant_table(entry: dict) -> str:
+    rows = [
+        [
+            f"{r['courant']:g}",
+            f"{r['dt_s'] * 1e6:.1f}",
+            r["steps"],
+            f"{r['wall_s']:.0f}",
+            f"{100 * r['against_smallest_step']['relative_l2']:.2f} %",
+            f"{100 * r['revolution_to_revolution']['relative_l2']:.2f} %",
+            f"{r['angle_deg']:.2f}",
+            f"{r['angle_change_deg']:+.2f}",
+            f"{r['max_surface_speed_m_s']:.4f}",
+            f"{100 * r['max_surface_speed_change']:+.1f} %",
+            f"{100 * r['particle_volume_growth']:+.1f} %",
+        ]
+        for r in entry["runs"]
+    ]
+    headers = ["courant", "dt µs", "steps", "wall s",
+               f"velocity L2 change vs courant {COURANTS[0]:g}",
+               f"rev {REVOLUTIONS} vs rev {REVOLUTIONS - 1} (same run)", "angle °",
+               "angle change °", "max surface speed m/s", "its change",
+               "Σ vol / Σ vol0 - 1"]  # fmt: skip
+    return table(headers, rows)
+
+
+def main_courant() -> None:
+    quiet = wait_for_quiet()
+    info = machine()
+    info["quiet_wait"] = quiet
+    echo(f"machine: {machine_line(info)}")
+    started = time.perf_counter()
+    FlowSimulation(scene(100.0, *COURANT_MATERIAL)).run(max_steps=25, progress=False)
+    entry = courant_study()
+    text = courant_table(entry)
+    echo(text)
+    echo(entry["verdict"])
+    md = f"""<!-- written by benchmarks/flow_stiffness.py --courant -->
+# The flow solver's time step: the Courant number (DESIGN §4)
+
+Machine: {machine_line(info)}. Whole script {time.perf_counter() - started:.0f} s.
+
+dt = courant · h / (c_p + |v|max); the scene default is {COURANT:g} and the schema allows
+up to 1. Scene: the 2-D drum of the stiffness study ({DIAMETER * 1000:g} mm, half full,
+{RPM:g} rpm, cell {CELL * 1000:g} mm, {REVOLUTIONS} revolutions, lab-frame average of the
+last), {entry["label"]} (the scene defaults: Table 1's cohesion, no dilation, the density
+projection; the Tote scenes' E/10). Every run is compared with the one at the smallest
+step, {COURANTS[0]:g}, by the measures of the stiffness study. Wall times are indicative
+(one thread, the machine may be shared); dt, steps and the changes do not depend on the
+load.
+
+{text}
+
+{entry["verdict"]}
+"""
+    write_atomic(RESULTS / "flow_stiffness_courant.md", md)
+    path = write_json("flow_stiffness_courant", {
+        "benchmark": "flow_stiffness --courant", "machine": info,
+        "settings": {"diameter_m": DIAMETER, "rpm": RPM, "fill_fraction": FILL,
+                     "cell_m": CELL, "revolutions": REVOLUTIONS, "courants": COURANTS,
+                     "material_cohesion_pa_dilation_deg": COURANT_MATERIAL,
+                     "stiffness_scaling": COURANT_FACTOR, "rule": COURANT_RULE},
+        "study": entry, "load_average_at_end": load_average(),
+        "cpu_pressure_at_end": cpu_pressure()})  # fmt: skip
+    echo(f"wrote {path.relative_to(path.parents[2])}, flow_stiffness_courant.md")
+
+
 def main() -> None:
     quiet = wait_for_quiet()
     info = machine()
@@ -349,4 +475,6 @@ Rule: the recommended default is {RULE}, for every material studied.
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main_courant() if "--courant" in sys.argv[1:] else main()
