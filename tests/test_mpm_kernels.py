@@ -473,6 +473,32 @@ def test_deposit_folded_at_the_mirror_plane_is_the_upper_half_of_bed_and_image()
 
 
 @DIMS
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_deposit_in_parts_is_the_serial_deposit_of_each_strided_part(d, parts):
+    # the parallel deposit of the phase averager's halves: part q takes particles
+    # q, q + P, ...; each part is the serial kernel's sum in the same order, bit for bit
+    rng = np.random.default_rng(11)
+    shape_out = (6, 5, 4)[:d]
+    n = 1001
+    x = rng.uniform(-0.05, 0.3, (n, d))
+    v = rng.normal(size=(n, d))
+    vol = rng.uniform(1.0, 2.0, n)
+    inside = (rng.uniform(size=shape_out) < 0.8).astype(np.int8)
+    origin_out, h_out = np.zeros(d), 0.05
+    acc_vol = np.zeros((parts, 2, *shape_out))
+    acc_mom = np.zeros((parts, 2, *shape_out, d))
+    extra = (d == 3,) if d == 3 else ()
+    parallel = kernels.deposit_parts_3d if d == 3 else kernels.deposit_parts_2d
+    parallel(x, v, vol, origin_out, 1.0 / h_out, inside, *extra, acc_vol[:, 1], acc_mom[:, 1])
+    assert (acc_vol[:, 0] == 0.0).all()
+    for q in range(parts):
+        part = (np.ascontiguousarray(a[q::parts]) for a in (x, v, vol))
+        ref_vol, ref_mom = _deposit(d, *part, origin_out, h_out, inside, mirror=d == 3)
+        np.testing.assert_array_equal(acc_vol[q, 1], ref_vol)
+        np.testing.assert_array_equal(acc_mom[q, 1], ref_mom)
+
+
+@DIMS
 def test_sort_by_cell_matches_twin_and_orders_cells_x_major(d):
     x, *_ = _particles(d, n=200, seed=10)
     x[:20] = x[20:40]  # ties keep their order

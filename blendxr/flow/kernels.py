@@ -1186,13 +1186,33 @@ def deposit_2d(x, v, vol, origin_out, inv_h_out, inside, acc_vol, acc_mom):
     acc_mom : ndarray of float64, shape (mx, my, 2)
         Accumulated volume times velocity [m^4/s], added to.
     """
+    _deposit_2d(x, v, vol, 0, 1, origin_out, inv_h_out, inside, acc_vol, acc_mom)
+
+
+@njit(**_JIT)
+def deposit_parts_2d(x, v, vol, origin_out, inv_h_out, inside, acc_vol, acc_mom):
+    """:func:`deposit_2d` into ``P`` accumulators at once, part q taking particles
+    q, q + P, q + 2P, ... (``acc_vol`` of shape (P, mx, my), ``acc_mom`` (P, mx, my, 2)).
+
+    The parts run in parallel (each owns its accumulator, so no two threads add to the
+    same cell) and each adds its particles in the order :func:`deposit_2d` would: the
+    result is the same, bit for bit, as P serial calls on ``x[q::P]``.
+    """
+    parts = acc_vol.shape[0]
+    for q in prange(parts):
+        _deposit_2d(x, v, vol, q, parts, origin_out, inv_h_out, inside, acc_vol[q], acc_mom[q])
+
+
+@njit(**_JIT_SERIAL)
+def _deposit_2d(x, v, vol, first, stride, origin_out, inv_h_out, inside, acc_vol, acc_mom):
+    """The loop of :func:`deposit_2d` over particles first, first + stride, ..."""
     mx, my = acc_vol.shape
     wx = np.empty(3)
     wy = np.empty(3)
     # the stencil's cells inside, gathered once: weight and (i, j) of each
     w = np.empty(9)
     cell = np.empty((9, 2), np.int64)
-    for p in range(x.shape[0]):
+    for p in range(first, x.shape[0], stride):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
         if not (-1.0 < fx < mx + 1.0 and -1.0 < fy < my + 1.0):
@@ -1259,6 +1279,27 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_
     acc_mom : ndarray of float64, shape (mx, my, mz, 3)
         Accumulated volume times velocity [m^4/s], added to.
     """
+    _deposit_3d(x, v, vol, 0, 1, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_mom)
+
+
+@njit(**_JIT)
+def deposit_parts_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_mom):
+    """:func:`deposit_3d` into ``P`` accumulators at once, part q taking particles
+    q, q + P, q + 2P, ... (``acc_vol`` of shape (P, mx, my, mz), ``acc_mom``
+    (P, mx, my, mz, 3)); parallel over the parts and, like :func:`deposit_parts_2d`,
+    the same bit for bit as P serial calls on ``x[q::P]``.
+    """
+    parts = acc_vol.shape[0]
+    for q in prange(parts):
+        _deposit_3d(
+            x, v, vol, q, parts, origin_out, inv_h_out, inside, mirror_z, acc_vol[q], acc_mom[q]
+        )
+
+
+@njit(**_JIT_SERIAL)
+def _deposit_3d(x, v, vol, first, stride, origin_out, inv_h_out, inside, mirror_z, acc_vol,
+                acc_mom):  # fmt: skip
+    """The loop of :func:`deposit_3d` over particles first, first + stride, ..."""
     mx, my, mz = acc_vol.shape
     wx = np.empty(3)
     wy = np.empty(3)
@@ -1269,7 +1310,7 @@ def deposit_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol, acc_
     w = np.empty(27)
     sign = np.empty(27)
     cell = np.empty((27, 3), np.int64)
-    for p in range(x.shape[0]):
+    for p in range(first, x.shape[0], stride):
         fx = (x[p, 0] - origin_out[0]) * inv_h_out
         fy = (x[p, 1] - origin_out[1]) * inv_h_out
         fz = (x[p, 2] - origin_out[2]) * inv_h_out
