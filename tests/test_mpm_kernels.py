@@ -487,7 +487,7 @@ def test_deposit_in_parts_is_the_serial_deposit_of_each_strided_part(d, parts):
     origin_out, h_out = np.zeros(d), 0.05
     acc_vol = np.zeros((parts, 2, *shape_out))
     acc_mom = np.zeros((parts, 2, *shape_out, d))
-    extra = (d == 3,) if d == 3 else ()
+    extra = (True,) if d == 3 else ()  # 3-D: folded at the mirror plane z = 0
     parallel = kernels.deposit_parts_3d if d == 3 else kernels.deposit_parts_2d
     parallel(x, v, vol, origin_out, 1.0 / h_out, inside, *extra, acc_vol[:, 1], acc_mom[:, 1])
     assert (acc_vol[:, 0] == 0.0).all()

@@ -97,7 +97,7 @@ class PhaseAverager:
     Bin k collects the samples whose phase lies within half a bin of ``k / n``; the fill
     of a bin is its mean particle volume per cell over its samples, the velocity its
     volume-weighted mean, each particle spread over the cells around it by the solver's
-    quadratic B-splines (:func:`kernels.deposit_3d`), renormalised over the cells of
+    quadratic B-splines (:func:`kernels.deposit_parts_3d`), renormalised over the cells of
     ``inside`` (default: every cell) so that none of its volume lands outside. With
     ``mirror`` the particles, all at z >= 0, stand for themselves and their mirror
     images across z = 0 (a mirror-symmetric run): only the upper half of the (symmetric)

@@ -62,7 +62,9 @@ length T of ``grid``, and :func:`reduce_grids_3d` sums them; no atomics, and
 the result does not depend on the thread schedule. Sorting particles by cell now and then
 (:func:`sort_by_cell`) keeps each chunk in a slab of the grid, which keeps the scatter in
 cache. Every other kernel writes disjoint outputs per iteration of its one ``prange`` loop
-(grid planes or particles); :func:`deposit_3d` and the helpers are serial.
+(grid planes or particles); :func:`deposit_parts_3d` runs its parts (the phase
+averager's halves of the particles) in parallel, each into its own accumulator, and
+:func:`deposit_3d` (one part) and the helpers are serial.
 """
 
 from __future__ import annotations
