@@ -298,6 +298,38 @@ def test_lax_wendroff_ignores_coefficients_of_other_cells(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_lax_wendroff_coefficients_of_a_blend_are_those_of_the_blended_fields(ndim):
+    """Blending inside the coefficient kernel gives the coefficients of the fields blended
+    beforehand (a + w (b - a), the same operations), bit for bit, and the step they make
+    is the reference twin's step on the blended fields."""
+    rng = np.random.default_rng(170 + ndim)
+    c, vel_a, dif_a, material, fill, dt, spacing = _lw_case(rng, ndim)
+    _, vel_b, dif_b, _, _, _, _ = _lw_case(np.random.default_rng(175 + ndim), ndim)
+    stack_a, stack_b = np.stack(vel_a), np.stack(vel_b)
+    dstack_a, dstack_b = np.stack(dif_a), np.stack(dif_b)
+    w = 0.37
+    vel = stack_a + w * (stack_b - stack_a)
+    dif = dstack_a + w * (dstack_b - dstack_a)
+    # the blend's own stable step (the twin's limit on the blended fields)
+    dt = 0.8 * lax_wendroff_max_dt(tuple(vel), tuple(dif), spacing, material)
+    between = kernels.LaxWendroffPlan(c.shape)
+    blended = kernels.LaxWendroffPlan(c.shape)
+    for plan in (between, blended):
+        plan.classify(material)
+    between.coefficients_between(stack_a, stack_b, dstack_a, dstack_b, w, dt, spacing)
+    blended.coefficients(tuple(vel), tuple(dif), dt, spacing)
+    interior = between.cls == kernels.LW_INTERIOR
+    assert interior.sum() > 50
+    assert np.array_equal(between.coef[:, interior], blended.coef[:, interior])
+    got = c.copy()
+    between.apply(c, got)
+    want = np.empty_like(c)
+    twin = reference.lw_step_2d if ndim == 2 else reference.lw_step_3d
+    twin(c, want, *vel, *dif, material, dt, *spacing)
+    np.testing.assert_allclose(got[interior], want[interior], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_lax_wendroff_plan_surface_follows_fill_and_classification(ndim):
     """The plan keeps the inward steps between calls; a new fill or a new
     classification must be taken into account."""

@@ -262,16 +262,46 @@ def _rows_3d(v, i, j):
     return v[i, j], v[i + 1, j], v[i - 1, j], v[i, j + 1], v[i, j - 1]
 
 
+@njit(**_JIT_INLINE)
+def _lw_axis_coefficients(
+    wk, w0, w1, w2, adv, v_a, v_b, v_a_xp, v_b_xp, v_a_xm, v_b_xm, v_a_yp, v_b_yp,
+    v_a_ym, v_b_ym, d_a, d_b, w, gx, gy, gz, dt, t, m, nu_out, a_out, klo, khi,
+):  # fmt: skip
+    """nu_k and A_k of one axis along a row, from the row's blended effective velocity
+    (``w0``, ``w1``, ``w2``; ``wk`` the axis's own) and the blended gradient of v_k.
+
+    Five loops of at most six loads and one store each, so that LLVM vectorises every
+    one (one loop with all of them had more pointers than its alias checks take). The
+    sums are formed in the order of the single expression they replace, so the
+    coefficients are the same bits.
+    """
+    for k in range(klo, khi):
+        adv[k] = w0[k] * (_mix(v_a_xp[k], v_b_xp[k], w) - _mix(v_a_xm[k], v_b_xm[k], w)) * gx
+    for k in range(klo, khi):
+        dv = _mix(v_a_yp[k], v_b_yp[k], w) - _mix(v_a_ym[k], v_b_ym[k], w)
+        adv[k] = adv[k] + w1[k] * dv * gy
+    for k in range(klo, khi):
+        kp = k + _U1
+        km = k - _U1
+        adv[k] = adv[k] + w2[k] * (_mix(v_a[kp], v_b[kp], w) - _mix(v_a[km], v_b[km], w)) * gz
+    for k in range(klo, khi):
+        nu_out[k] = (wk[k] - 0.5 * dt * adv[k]) * t
+    for k in range(klo, khi):
+        nu = wk[k] * t
+        a_out[k] = 0.5 * nu * nu + _mix(d_a[k], d_b[k], w) * m
+
+
 @njit(**_JIT)
-def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, rows, dt, dx, dy, dz, coef):
+def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, rows, dt, dx, dy, dz, coef, scratch):
     """Per-cell coefficients of eq. (6) (3-D), of the flow blended at weight ``w`` between
     two phases (``vel_*``, ``dif_*`` of shape (3, nx, ny, nz)); see the 2-D version.
 
     Written like the stencil (:func:`lw_apply_3d`): along each (i, j) row's material
-    range, with unsigned indices and no branch in the inner loop. (LLVM does not
-    vectorise it all the same: its 44 row views are more than its alias checks take.)
-    Cells of the range that are not interior get coefficients too (from whatever the
-    fields hold there); the stencil never uses them.
+    range, with unsigned indices. The row's blended effective velocity goes to
+    ``scratch[i]`` (shape (nx, 4, nz), float64: three components and the advective
+    correction of the axis at hand), and each coefficient is made from it in short
+    loops that LLVM vectorises. Cells of the range that are not interior get
+    coefficients too (from whatever the fields hold there); the stencil never uses them.
     """
     nx, ny, nz = cls.shape
     # reciprocals once: the divisions were most of this loop's arithmetic
@@ -279,11 +309,14 @@ def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, rows, dt, dx, dy, dz,
     tx, ty, tz = dt / dx, dt / dy, dt / dz
     mx, my, mz = dt / (dx * dx), dt / (dy * dy), dt / (dz * dz)
     for i in prange(1, nx - 1):
+        wx, wy, wz, adv = scratch[i, 0], scratch[i, 1], scratch[i, 2], scratch[i, 3]
         for j in range(1, ny - 1):
             lo = max(rows[i, j, 0], 1)
             hi = min(rows[i, j, 1], nz - 1)
             if hi <= lo:
                 continue
+            klo = np.uint64(lo)
+            khi = np.uint64(hi)
             xa, xa_xp, xa_xm, xa_yp, xa_ym = _rows_3d(vel_a[0], i, j)
             xb, xb_xp, xb_xm, xb_yp, xb_ym = _rows_3d(vel_b[0], i, j)
             ya, ya_xp, ya_xm, ya_yp, ya_ym = _rows_3d(vel_a[1], i, j)
@@ -295,46 +328,30 @@ def lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, w, cls, rows, dt, dx, dy, dz,
             qa, qa_yp, qa_ym = dif_a[1, i, j], dif_a[1, i, j + 1], dif_a[1, i, j - 1]
             qb, qb_yp, qb_ym = dif_b[1, i, j], dif_b[1, i, j + 1], dif_b[1, i, j - 1]
             ra, rb = dif_a[2, i, j], dif_b[2, i, j]
-            c0, c1, c2 = coef[0, i, j], coef[1, i, j], coef[2, i, j]
-            c3, c4, c5 = coef[3, i, j], coef[4, i, j], coef[5, i, j]
-            for k in range(np.uint64(lo), np.uint64(hi)):
+            # the effective velocity w_k = v_k - dD_kk/dx_k of the blend, one loop a component
+            for k in range(klo, khi):
+                dd = _mix(pa_xp[k], pb_xp[k], w) - _mix(pa_xm[k], pb_xm[k], w)
+                wx[k] = _mix(xa[k], xb[k], w) - dd * gx
+            for k in range(klo, khi):
+                dd = _mix(qa_yp[k], qb_yp[k], w) - _mix(qa_ym[k], qb_ym[k], w)
+                wy[k] = _mix(ya[k], yb[k], w) - dd * gy
+            for k in range(klo, khi):
                 kp = k + _U1
                 km = k - _U1
-                wx = (
-                    _mix(xa[k], xb[k], w)
-                    - (_mix(pa_xp[k], pb_xp[k], w) - _mix(pa_xm[k], pb_xm[k], w)) * gx
-                )
-                wy = (
-                    _mix(ya[k], yb[k], w)
-                    - (_mix(qa_yp[k], qb_yp[k], w) - _mix(qa_ym[k], qb_ym[k], w)) * gy
-                )
-                wz = (
-                    _mix(za[k], zb[k], w) - (_mix(ra[kp], rb[kp], w) - _mix(ra[km], rb[km], w)) * gz
-                )
-                adv_x = (
-                    wx * (_mix(xa_xp[k], xb_xp[k], w) - _mix(xa_xm[k], xb_xm[k], w)) * gx
-                    + wy * (_mix(xa_yp[k], xb_yp[k], w) - _mix(xa_ym[k], xb_ym[k], w)) * gy
-                    + wz * (_mix(xa[kp], xb[kp], w) - _mix(xa[km], xb[km], w)) * gz
-                )
-                adv_y = (
-                    wx * (_mix(ya_xp[k], yb_xp[k], w) - _mix(ya_xm[k], yb_xm[k], w)) * gx
-                    + wy * (_mix(ya_yp[k], yb_yp[k], w) - _mix(ya_ym[k], yb_ym[k], w)) * gy
-                    + wz * (_mix(ya[kp], yb[kp], w) - _mix(ya[km], yb[km], w)) * gz
-                )
-                adv_z = (
-                    wx * (_mix(za_xp[k], zb_xp[k], w) - _mix(za_xm[k], zb_xm[k], w)) * gx
-                    + wy * (_mix(za_yp[k], zb_yp[k], w) - _mix(za_ym[k], zb_ym[k], w)) * gy
-                    + wz * (_mix(za[kp], zb[kp], w) - _mix(za[km], zb[km], w)) * gz
-                )
-                nux = wx * tx
-                nuy = wy * ty
-                nuz = wz * tz
-                c0[k] = (wx - 0.5 * dt * adv_x) * tx
-                c1[k] = (wy - 0.5 * dt * adv_y) * ty
-                c2[k] = (wz - 0.5 * dt * adv_z) * tz
-                c3[k] = 0.5 * nux * nux + _mix(pa[k], pb[k], w) * mx
-                c4[k] = 0.5 * nuy * nuy + _mix(qa[k], qb[k], w) * my
-                c5[k] = 0.5 * nuz * nuz + _mix(ra[k], rb[k], w) * mz
+                dd = _mix(ra[kp], rb[kp], w) - _mix(ra[km], rb[km], w)
+                wz[k] = _mix(za[k], zb[k], w) - dd * gz
+            _lw_axis_coefficients(
+                wx, wx, wy, wz, adv, xa, xb, xa_xp, xb_xp, xa_xm, xb_xm, xa_yp, xb_yp, xa_ym,
+                xb_ym, pa, pb, w, gx, gy, gz, dt, tx, mx, coef[0, i, j], coef[3, i, j], klo, khi,
+            )  # fmt: skip
+            _lw_axis_coefficients(
+                wy, wx, wy, wz, adv, ya, yb, ya_xp, yb_xp, ya_xm, yb_xm, ya_yp, yb_yp, ya_ym,
+                yb_ym, qa, qb, w, gx, gy, gz, dt, ty, my, coef[1, i, j], coef[4, i, j], klo, khi,
+            )  # fmt: skip
+            _lw_axis_coefficients(
+                wz, wx, wy, wz, adv, za, zb, za_xp, zb_xp, za_xm, zb_xm, za_yp, zb_yp, za_ym,
+                zb_ym, ra, rb, w, gx, gy, gz, dt, tz, mz, coef[2, i, j], coef[5, i, j], klo, khi,
+            )  # fmt: skip
 
 
 # The stencil loops index rows with unsigned integers: numba wraps negative signed indices
@@ -620,6 +637,8 @@ class LaxWendroffPlan:
         self.rows = np.zeros((*shape[:-1], 2), np.int64)
         n_coef = LW_COEFFICIENTS_3D if ndim == 3 else LW_COEFFICIENTS_2D
         self.coef = np.zeros((n_coef, *shape))
+        # rows of the blended effective velocity, per plane (see lw_coefficients_3d)
+        self.row_scratch = np.zeros((shape[0], 4, shape[-1])) if ndim == 3 else None
         self._list_surface()
 
     def _list_surface(self):
@@ -645,7 +664,7 @@ class LaxWendroffPlan:
         components, shape (ndim, *shape)), without writing the blended fields."""
         if self.ndim == 3:
             lw_coefficients_3d(vel_a, vel_b, dif_a, dif_b, float(w), self.cls, self.rows, dt,
-                               *spacing, self.coef)  # fmt: skip
+                               *spacing, self.coef, self.row_scratch)  # fmt: skip
         else:
             lw_coefficients_2d(vel_a, vel_b, dif_a, dif_b, float(w), self.cls, dt, *spacing,
                                self.coef)  # fmt: skip
@@ -1479,6 +1498,34 @@ def _may_bind(a1, smax, b2, pow_bound, low):
     return pow_bound / smax < low
 
 
+@njit(**_JIT_SCALAR)
+def _lw_pair_cell_3d(vel_a, dif_a, vel_b, dif_b, i, j, k, dx, dy, dz, low):
+    """min(low, the pair limit of one cell) for any cell, edges included (3-D)."""
+    nx, ny, nz = vel_a.shape[1:]
+    gxa = gxb = gya = gyb = gza = gzb = 0.0
+    if 0 < i < nx - 1:
+        gxa = (dif_a[0, i + 1, j, k] - dif_a[0, i - 1, j, k]) / (2.0 * dx)
+        gxb = (dif_b[0, i + 1, j, k] - dif_b[0, i - 1, j, k]) / (2.0 * dx)
+    if 0 < j < ny - 1:
+        gya = (dif_a[1, i, j + 1, k] - dif_a[1, i, j - 1, k]) / (2.0 * dy)
+        gyb = (dif_b[1, i, j + 1, k] - dif_b[1, i, j - 1, k]) / (2.0 * dy)
+    if 0 < k < nz - 1:
+        gza = (dif_a[2, i, j, k + 1] - dif_a[2, i, j, k - 1]) / (2.0 * dz)
+        gzb = (dif_b[2, i, j, k + 1] - dif_b[2, i, j, k - 1]) / (2.0 * dz)
+    sx = max(abs(vel_a[0, i, j, k] - gxa), abs(vel_b[0, i, j, k] - gxb)) / dx
+    sy = max(abs(vel_a[1, i, j, k] - gya), abs(vel_b[1, i, j, k] - gyb)) / dy
+    sz = max(abs(vel_a[2, i, j, k] - gza), abs(vel_b[2, i, j, k] - gzb)) / dz
+    b2 = 2.0 * (
+        max(dif_a[0, i, j, k], dif_b[0, i, j, k]) / (dx * dx)
+        + max(dif_a[1, i, j, k], dif_b[1, i, j, k]) / (dy * dy)
+        + max(dif_a[2, i, j, k], dif_b[2, i, j, k]) / (dz * dz)
+    )
+    if _may_bind(sx + sy + sz, max(sx, max(sy, sz)), b2, _POW_BOUND_3D, low):
+        a23 = sx ** (2.0 / 3.0) + sy ** (2.0 / 3.0) + sz ** (2.0 / 3.0)
+        low = min(low, _limit_from_bounds(sx + sy + sz, a23, b2))
+    return low
+
+
 @njit(**_JIT)
 def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
     """Largest Lax-Wendroff dt valid for every blend of two phases (3-D).
@@ -1487,6 +1534,12 @@ def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
     are bounded by their larger value over the two phases (a blend is a convex combination),
     and the limits of :func:`blendxr.ade.stability.lax_wendroff_max_dt` are applied to those
     bounds: sum_k |nu_k|**(2/3) <= 1 and (sum_k |nu_k|)**2 + 2 sum_k mu_k <= 1.
+
+    Inner rows are done in short loops LLVM vectorises (the bounded speeds, the quadratic
+    limit and the power law's bound of each cell), then one scalar pass finds the cells
+    that may bind (see :func:`_may_bind`); the edge cells of the grid take the per-cell
+    path. Both make each cell's limit with the same operations, so the minimum is the
+    same number.
 
     Parameters
     ----------
@@ -1497,33 +1550,80 @@ def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
     """
     nx, ny, nz = material.shape
     best = np.full(nx, np.inf)
+    # per plane: bounded speeds along x, y, z, 2 sum mu / dt, the quadratic limit, the bound
+    scratch = np.empty((nx, 6, nz))
+    hx, hy, hz = 2.0 * dx, 2.0 * dy, 2.0 * dz
+    ex, ey, ez = dx * dx, dy * dy, dz * dz
     for i in prange(nx):
+        sx, sy, sz = scratch[i, 0], scratch[i, 1], scratch[i, 2]
+        b2, quad, bound = scratch[i, 3], scratch[i, 4], scratch[i, 5]
         low = np.inf
+        inner_plane = 0 < i < nx - 1
         for j in range(ny):
-            for k in range(nz):
-                if material[i, j, k] == 0:
-                    continue
-                gxa = gxb = gya = gyb = gza = gzb = 0.0
-                if 0 < i < nx - 1:
-                    gxa = (dif_a[0, i + 1, j, k] - dif_a[0, i - 1, j, k]) / (2.0 * dx)
-                    gxb = (dif_b[0, i + 1, j, k] - dif_b[0, i - 1, j, k]) / (2.0 * dx)
-                if 0 < j < ny - 1:
-                    gya = (dif_a[1, i, j + 1, k] - dif_a[1, i, j - 1, k]) / (2.0 * dy)
-                    gyb = (dif_b[1, i, j + 1, k] - dif_b[1, i, j - 1, k]) / (2.0 * dy)
-                if 0 < k < nz - 1:
-                    gza = (dif_a[2, i, j, k + 1] - dif_a[2, i, j, k - 1]) / (2.0 * dz)
-                    gzb = (dif_b[2, i, j, k + 1] - dif_b[2, i, j, k - 1]) / (2.0 * dz)
-                sx = max(abs(vel_a[0, i, j, k] - gxa), abs(vel_b[0, i, j, k] - gxb)) / dx
-                sy = max(abs(vel_a[1, i, j, k] - gya), abs(vel_b[1, i, j, k] - gyb)) / dy
-                sz = max(abs(vel_a[2, i, j, k] - gza), abs(vel_b[2, i, j, k] - gzb)) / dz
-                b2 = 2.0 * (
-                    max(dif_a[0, i, j, k], dif_b[0, i, j, k]) / (dx * dx)
-                    + max(dif_a[1, i, j, k], dif_b[1, i, j, k]) / (dy * dy)
-                    + max(dif_a[2, i, j, k], dif_b[2, i, j, k]) / (dz * dz)
-                )
-                if _may_bind(sx + sy + sz, max(sx, max(sy, sz)), b2, _POW_BOUND_3D, low):
-                    a23 = sx ** (2.0 / 3.0) + sy ** (2.0 / 3.0) + sz ** (2.0 / 3.0)
-                    low = min(low, _limit_from_bounds(sx + sy + sz, a23, b2))
+            row = material[i, j]
+            lo = 0
+            while lo < nz and row[lo] == 0:
+                lo += 1
+            if lo == nz:
+                continue
+            hi = nz
+            while row[hi - 1] == 0:
+                hi -= 1
+            if not (inner_plane and 0 < j < ny - 1):
+                for k in range(lo, hi):
+                    if row[k] != 0:
+                        low = _lw_pair_cell_3d(vel_a, dif_a, vel_b, dif_b, i, j, k, dx, dy, dz, low)
+                continue
+            # the grid's first and last cell along z take the per-cell path
+            if lo == 0:
+                low = _lw_pair_cell_3d(vel_a, dif_a, vel_b, dif_b, i, j, 0, dx, dy, dz, low)
+                lo = 1
+            if hi == nz:
+                if row[nz - 1] != 0:
+                    k = nz - 1
+                    low = _lw_pair_cell_3d(vel_a, dif_a, vel_b, dif_b, i, j, k, dx, dy, dz, low)
+                hi = nz - 1
+            if hi <= lo:
+                continue
+            klo = np.uint64(lo)
+            khi = np.uint64(hi)
+            xa, xb = vel_a[0, i, j], vel_b[0, i, j]
+            ya, yb = vel_a[1, i, j], vel_b[1, i, j]
+            za, zb = vel_a[2, i, j], vel_b[2, i, j]
+            pa_p, pa_m = dif_a[0, i + 1, j], dif_a[0, i - 1, j]
+            pb_p, pb_m = dif_b[0, i + 1, j], dif_b[0, i - 1, j]
+            qa_p, qa_m = dif_a[1, i, j + 1], dif_a[1, i, j - 1]
+            qb_p, qb_m = dif_b[1, i, j + 1], dif_b[1, i, j - 1]
+            ra, rb = dif_a[2, i, j], dif_b[2, i, j]
+            pa, pb, qa, qb = dif_a[0, i, j], dif_b[0, i, j], dif_a[1, i, j], dif_b[1, i, j]
+            for k in range(klo, khi):
+                ga = (pa_p[k] - pa_m[k]) / hx
+                gb = (pb_p[k] - pb_m[k]) / hx
+                sx[k] = max(abs(xa[k] - ga), abs(xb[k] - gb)) / dx
+            for k in range(klo, khi):
+                ga = (qa_p[k] - qa_m[k]) / hy
+                gb = (qb_p[k] - qb_m[k]) / hy
+                sy[k] = max(abs(ya[k] - ga), abs(yb[k] - gb)) / dy
+            for k in range(klo, khi):
+                kp = k + _U1
+                km = k - _U1
+                ga = (ra[kp] - ra[km]) / hz
+                gb = (rb[kp] - rb[km]) / hz
+                sz[k] = max(abs(za[k] - ga), abs(zb[k] - gb)) / dz
+            for k in range(klo, khi):
+                xy = max(pa[k], pb[k]) / ex + max(qa[k], qb[k]) / ey
+                b2[k] = 2.0 * (xy + max(ra[k], rb[k]) / ez)
+            for k in range(klo, khi):
+                a1 = sx[k] + sy[k] + sz[k]
+                denom = b2[k] + np.sqrt(b2[k] * b2[k] + 4.0 * a1 * a1)
+                quad[k] = 2.0 / denom if denom > 0.0 else np.inf
+            for k in range(klo, khi):
+                bound[k] = _POW_BOUND_3D / max(sx[k], max(sy[k], sz[k]))
+            for k in range(lo, hi):
+                if row[k] != 0 and (quad[k] < low or bound[k] < low):
+                    a1 = sx[k] + sy[k] + sz[k]
+                    a23 = sx[k] ** (2.0 / 3.0) + sy[k] ** (2.0 / 3.0) + sz[k] ** (2.0 / 3.0)
+                    low = min(low, _limit_from_bounds(a1, a23, b2[k]))
         best[i] = low
     return best.min()
 
