@@ -1526,49 +1526,91 @@ def _lw_pair_cell_3d(vel_a, dif_a, vel_b, dif_b, i, j, k, dx, dy, dz, low):
     return low
 
 
-@njit(**_JIT)
-def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
-    """Largest Lax-Wendroff dt valid for every blend of two phases (3-D).
+@njit(**_JIT_INLINE)
+def _row_range(row):
+    """(lo, hi): the half-open range of a uint8 row holding its nonzero cells ((n, n): none)."""
+    n = row.size
+    lo = 0
+    while lo < n and row[lo] == 0:
+        lo += 1
+    if lo == n:
+        return n, n
+    hi = n
+    while row[hi - 1] == 0:
+        hi -= 1
+    return lo, hi
 
-    Per material cell and axis the effective speed |v_k - dD_kk/dx_k| / h_k and D_kk / h_k**2
-    are bounded by their larger value over the two phases (a blend is a convex combination),
-    and the limits of :func:`blendxr.ade.stability.lax_wendroff_max_dt` are applied to those
-    bounds: sum_k |nu_k|**(2/3) <= 1 and (sum_k |nu_k|)**2 + 2 sum_k mu_k <= 1.
 
-    Inner rows are done in short loops LLVM vectorises (the bounded speeds, the quadratic
-    limit and the power law's bound of each cell), then one scalar pass finds the cells
-    that may bind (see :func:`_may_bind`); the edge cells of the grid take the per-cell
-    path. Both make each cell's limit with the same operations, so the minimum is the
-    same number.
-
-    Parameters
-    ----------
-    vel_a, dif_a, vel_b, dif_b : ndarray, shape (3, nx, ny, nz)
-        Velocity and diffusivity components of the two phases.
-    material : ndarray of uint8, shape (nx, ny, nz)
-        Cells that constrain dt (material in either phase).
-    """
-    nx, ny, nz = material.shape
-    best = np.full(nx, np.inf)
-    # per plane: bounded speeds along x, y, z, 2 sum mu / dt, the quadratic limit, the bound
-    scratch = np.empty((nx, 6, nz))
+@njit(**_JIT_INLINE)
+def _pair_rows_3d(vel_a, dif_a, vel_b, dif_b, i, j, klo, khi, dx, dy, dz, sx, sy, sz, b2, quad):
+    """Along row (i, j), cells klo .. khi - 1 (none on the grid's edge): the bounded
+    speeds, 2 sum mu / dt and the quadratic limit of the pair (see
+    :func:`lw_max_dt_pair_3d`), in loops of one store each that LLVM vectorises."""
     hx, hy, hz = 2.0 * dx, 2.0 * dy, 2.0 * dz
     ex, ey, ez = dx * dx, dy * dy, dz * dz
+    xa, xb = vel_a[0, i, j], vel_b[0, i, j]
+    ya, yb = vel_a[1, i, j], vel_b[1, i, j]
+    za, zb = vel_a[2, i, j], vel_b[2, i, j]
+    pa_p, pa_m = dif_a[0, i + 1, j], dif_a[0, i - 1, j]
+    pb_p, pb_m = dif_b[0, i + 1, j], dif_b[0, i - 1, j]
+    qa_p, qa_m = dif_a[1, i, j + 1], dif_a[1, i, j - 1]
+    qb_p, qb_m = dif_b[1, i, j + 1], dif_b[1, i, j - 1]
+    ra, rb = dif_a[2, i, j], dif_b[2, i, j]
+    pa, pb, qa, qb = dif_a[0, i, j], dif_b[0, i, j], dif_a[1, i, j], dif_b[1, i, j]
+    for k in range(klo, khi):
+        ga = (pa_p[k] - pa_m[k]) / hx
+        gb = (pb_p[k] - pb_m[k]) / hx
+        sx[k] = max(abs(xa[k] - ga), abs(xb[k] - gb)) / dx
+    for k in range(klo, khi):
+        ga = (qa_p[k] - qa_m[k]) / hy
+        gb = (qb_p[k] - qb_m[k]) / hy
+        sy[k] = max(abs(ya[k] - ga), abs(yb[k] - gb)) / dy
+    for k in range(klo, khi):
+        kp = k + _U1
+        km = k - _U1
+        ga = (ra[kp] - ra[km]) / hz
+        gb = (rb[kp] - rb[km]) / hz
+        sz[k] = max(abs(za[k] - ga), abs(zb[k] - gb)) / dz
+    for k in range(klo, khi):
+        xy = max(pa[k], pb[k]) / ex + max(qa[k], qb[k]) / ey
+        b2[k] = 2.0 * (xy + max(ra[k], rb[k]) / ez)
+    for k in range(klo, khi):
+        a1 = sx[k] + sy[k] + sz[k]
+        denom = b2[k] + np.sqrt(b2[k] * b2[k] + 4.0 * a1 * a1)
+        quad[k] = 2.0 / denom if denom > 0.0 else np.inf
+
+
+# A cell's power-law limit (sum_k s_k**(2/3))**-1.5 = 1 / ||s||_(2/3) lies between
+# 1 / (sqrt(n) ||s||_1) and 1 / ||s||_1 (norm inequalities, n axes), a factor sqrt(3) in
+# 3-D: bounds of each cell's limit that need no powers. Both are widened by 0.1 % so that
+# rounding in the powers can never matter.
+_POW_UPPER_3D = 1.001
+_POW_LOWER_3D = 0.999 / np.sqrt(3.0)
+
+
+@njit(**_JIT)
+def _lw_pair_pass_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz, scratch, threshold,
+                     exact, best):  # fmt: skip
+    """One pass of :func:`lw_max_dt_pair_3d` over the grid, per plane into ``best``.
+
+    ``exact`` False: an upper bound of the pair limit, the least over material cells of
+    min(quadratic limit, :data:`_POW_UPPER_3D` / sum_k s_k) (cells on the grid's edge give
+    their exact limit). ``exact`` True: the least exact limit of the cells whose lower
+    bound, min(quadratic limit, :data:`_POW_LOWER_3D` / sum_k s_k), does not exceed
+    ``threshold`` or the plane's least limit so far; every other cell's limit is above
+    the minimum, so this is the pair limit when ``threshold`` is the first pass's bound.
+    """
+    nx, ny, nz = material.shape
     for i in prange(nx):
         sx, sy, sz = scratch[i, 0], scratch[i, 1], scratch[i, 2]
-        b2, quad, bound = scratch[i, 3], scratch[i, 4], scratch[i, 5]
+        b2, quad = scratch[i, 3], scratch[i, 4]
         low = np.inf
         inner_plane = 0 < i < nx - 1
         for j in range(ny):
             row = material[i, j]
-            lo = 0
-            while lo < nz and row[lo] == 0:
-                lo += 1
+            lo, hi = _row_range(row)
             if lo == nz:
                 continue
-            hi = nz
-            while row[hi - 1] == 0:
-                hi -= 1
             if not (inner_plane and 0 < j < ny - 1):
                 for k in range(lo, hi):
                     if row[k] != 0:
@@ -1585,46 +1627,54 @@ def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
                 hi = nz - 1
             if hi <= lo:
                 continue
-            klo = np.uint64(lo)
-            khi = np.uint64(hi)
-            xa, xb = vel_a[0, i, j], vel_b[0, i, j]
-            ya, yb = vel_a[1, i, j], vel_b[1, i, j]
-            za, zb = vel_a[2, i, j], vel_b[2, i, j]
-            pa_p, pa_m = dif_a[0, i + 1, j], dif_a[0, i - 1, j]
-            pb_p, pb_m = dif_b[0, i + 1, j], dif_b[0, i - 1, j]
-            qa_p, qa_m = dif_a[1, i, j + 1], dif_a[1, i, j - 1]
-            qb_p, qb_m = dif_b[1, i, j + 1], dif_b[1, i, j - 1]
-            ra, rb = dif_a[2, i, j], dif_b[2, i, j]
-            pa, pb, qa, qb = dif_a[0, i, j], dif_b[0, i, j], dif_a[1, i, j], dif_b[1, i, j]
-            for k in range(klo, khi):
-                ga = (pa_p[k] - pa_m[k]) / hx
-                gb = (pb_p[k] - pb_m[k]) / hx
-                sx[k] = max(abs(xa[k] - ga), abs(xb[k] - gb)) / dx
-            for k in range(klo, khi):
-                ga = (qa_p[k] - qa_m[k]) / hy
-                gb = (qb_p[k] - qb_m[k]) / hy
-                sy[k] = max(abs(ya[k] - ga), abs(yb[k] - gb)) / dy
-            for k in range(klo, khi):
-                kp = k + _U1
-                km = k - _U1
-                ga = (ra[kp] - ra[km]) / hz
-                gb = (rb[kp] - rb[km]) / hz
-                sz[k] = max(abs(za[k] - ga), abs(zb[k] - gb)) / dz
-            for k in range(klo, khi):
-                xy = max(pa[k], pb[k]) / ex + max(qa[k], qb[k]) / ey
-                b2[k] = 2.0 * (xy + max(ra[k], rb[k]) / ez)
-            for k in range(klo, khi):
-                a1 = sx[k] + sy[k] + sz[k]
-                denom = b2[k] + np.sqrt(b2[k] * b2[k] + 4.0 * a1 * a1)
-                quad[k] = 2.0 / denom if denom > 0.0 else np.inf
-            for k in range(klo, khi):
-                bound[k] = _POW_BOUND_3D / max(sx[k], max(sy[k], sz[k]))
+            _pair_rows_3d(vel_a, dif_a, vel_b, dif_b, i, j, np.uint64(lo), np.uint64(hi),
+                          dx, dy, dz, sx, sy, sz, b2, quad)  # fmt: skip
             for k in range(lo, hi):
-                if row[k] != 0 and (quad[k] < low or bound[k] < low):
-                    a1 = sx[k] + sy[k] + sz[k]
+                if row[k] == 0:
+                    continue
+                a1 = sx[k] + sy[k] + sz[k]
+                if not exact:
+                    low = min(low, min(quad[k], _POW_UPPER_3D / a1))
+                elif min(quad[k], _POW_LOWER_3D / a1) <= min(threshold, low):
                     a23 = sx[k] ** (2.0 / 3.0) + sy[k] ** (2.0 / 3.0) + sz[k] ** (2.0 / 3.0)
                     low = min(low, _limit_from_bounds(a1, a23, b2[k]))
         best[i] = low
+
+
+@njit(**_JIT_SCALAR)
+def lw_max_dt_pair_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz):
+    """Largest Lax-Wendroff dt valid for every blend of two phases (3-D).
+
+    Per material cell and axis the effective speed |v_k - dD_kk/dx_k| / h_k and D_kk / h_k**2
+    are bounded by their larger value over the two phases (a blend is a convex combination),
+    and the limits of :func:`blendxr.ade.stability.lax_wendroff_max_dt` are applied to those
+    bounds: sum_k |nu_k|**(2/3) <= 1 and (sum_k |nu_k|)**2 + 2 sum_k mu_k <= 1.
+
+    The powers of the 2/3 law are most of a cell's cost, so two passes
+    (:func:`_lw_pair_pass_3d`): the first bounds the minimum from above without them,
+    the second takes them only in the cells whose lower bound reaches that bound (the
+    bounds are a factor sqrt(3) apart, so in a smooth flow these are the fastest cells).
+    Each cell's limit is made with the same operations as the per-cell formula, so the
+    minimum is the same number.
+
+    Parameters
+    ----------
+    vel_a, dif_a, vel_b, dif_b : ndarray, shape (3, nx, ny, nz)
+        Velocity and diffusivity components of the two phases.
+    material : ndarray of uint8, shape (nx, ny, nz)
+        Cells that constrain dt (material in either phase).
+    """
+    nx, ny, nz = material.shape
+    best = np.full(nx, np.inf)
+    # per plane: bounded speeds along x, y, z, 2 sum mu / dt, the quadratic limit
+    scratch = np.empty((nx, 5, nz))
+    _lw_pair_pass_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz, scratch, np.inf,
+                     False, best)  # fmt: skip
+    bound = best.min()
+    if not bound < np.inf:
+        return bound  # no material, or speeds that are not finite: no step is stable
+    _lw_pair_pass_3d(vel_a, dif_a, vel_b, dif_b, material, dx, dy, dz, scratch, bound,
+                     True, best)  # fmt: skip
     return best.min()
 
 

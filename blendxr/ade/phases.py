@@ -161,6 +161,8 @@ class CyclicPhaseReader:
         self._cache: OrderedDict[int, PreparedPhase] = OrderedDict()
         self._pending: dict[int, Future] = {}
         self._lock = threading.Lock()
+        # the interpolation's buffers, one set per preparing thread (see _prepare)
+        self._work: dict[int, dict] = {}
         self._pool = ThreadPoolExecutor(max_workers=1) if prefetch and self.n_phases > 2 else None
         self.phases_read = 0
         self.divergence_treatment = _divergence_treatment(flow, self.n_phases, steady_divergence)
@@ -219,9 +221,12 @@ class CyclicPhaseReader:
         n_dif = len(sources) - n
         bounds = [(-math.inf, math.inf)] * n + [(0.0, math.inf)] * n_dif
         out = np.empty((len(sources), *self.grid.shape), PHASE_DTYPE)
-        interpolate_fields_into(np.stack(sources), self._maps, self.vessel, bounds, out)
+        with self._lock:
+            work = self._work.setdefault(threading.get_ident(), {})
+        interpolate_fields_into(np.stack(sources), self._maps, self.vessel, bounds, out, work)
         fill_ade = np.empty((1, *self.grid.shape))
-        interpolate_fields_into(fill[None], self._maps, self.vessel, [(0.0, 1.0)], fill_ade)
+        interpolate_fields_into(fill[None], self._maps, self.vessel, [(0.0, 1.0)], fill_ade,
+                                work)  # fmt: skip
         return PreparedPhase(k, out[:n], out[n:] if n_dif else None, fill_ade[0])
 
     def get(self, k: int) -> PreparedPhase:
@@ -252,10 +257,11 @@ class CyclicPhaseReader:
             self._pending[k] = self._pool.submit(self._prepare, k)
 
     def close(self) -> None:
-        """Stop the prefetch thread."""
+        """Stop the prefetch thread and free the interpolation's buffers."""
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+        self._work.clear()
 
     def bracket(self, phase_position: float):
         """The two phases around a position in phase-index units and the weight of the second.
