@@ -1360,20 +1360,37 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
     _fv_step((_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub)
 
 
+@njit(**_JIT_INLINE)
+def _transport_value(va, vb, w, a, j, b, jm, jp, dt, span, cap):
+    u = _mix(va[a, j, b], vb[a, j, b], w)
+    up = _mix(va[a, jp, b], vb[a, jp, b], w)
+    um = _mix(va[a, jm, b], vb[a, jm, b], w)
+    factor = 1.0 - 0.5 * dt * (up - um) / span
+    return u * min(max(factor, 0.0), cap)
+
+
 @njit(**_JIT)
 def _transport_velocity(va, vb, w, out, dt, h, cap):
+    # Every axis streams through the arrays in memory order: along the last axis each
+    # thread takes whole lines; otherwise (a, j) pairs, each with its contiguous b run
+    # (a loop over j outside a, as before, strode through all of memory once per j).
     n0, n, n2 = va.shape
-    for j in prange(n):
-        jm = max(j - 1, 0)
-        jp = min(j + 1, n - 1)
-        span = (jp - jm) * h
-        for a in range(n0):
+    if n2 == 1:
+        for a in prange(n0):
+            for j in range(n):
+                jm = max(j - 1, 0)
+                jp = min(j + 1, n - 1)
+                span = (jp - jm) * h
+                out[a, j, 0] = _transport_value(va, vb, w, a, j, 0, jm, jp, dt, span, cap)
+    else:
+        for t in prange(n0 * n):
+            a = t // n
+            j = t - a * n
+            jm = max(j - 1, 0)
+            jp = min(j + 1, n - 1)
+            span = (jp - jm) * h
             for b in range(n2):
-                u = _mix(va[a, j, b], vb[a, j, b], w)
-                up = _mix(va[a, jp, b], vb[a, jp, b], w)
-                um = _mix(va[a, jm, b], vb[a, jm, b], w)
-                factor = 1.0 - 0.5 * dt * (up - um) / span
-                out[a, j, b] = u * min(max(factor, 0.0), cap)
+                out[a, j, b] = _transport_value(va, vb, w, a, j, b, jm, jp, dt, span, cap)
 
 
 def fv_transport_velocity(v, out, axis, dt, h, cap, v_b=None, w=0.0):
