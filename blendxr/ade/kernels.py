@@ -871,9 +871,12 @@ def _fv_block(
     n_rows = nl if along else na
     row_len = n2 if along else nl
     pos_hi = np.uint64(max(na - 3, 0))
-    # positions along the sweep holding material: first .. last (-1: none)
+    # positions along the sweep holding material: first .. last (-1: none); across the
+    # sweep (axes 0, 1), the lines holding material: line_lo .. line_hi
     first = -1
     last = -1
+    line_lo = row_len
+    line_hi = -1
     if plane_ok:
         for row in range(n_rows):
             if along:
@@ -895,6 +898,14 @@ def _fv_block(
                 if n_mat > 0:
                     first = row if first < 0 else first
                     last = row
+                    lo = 0
+                    while sm[g + lo] <= 0.0:
+                        lo += 1
+                    hi = row_len - 1
+                    while sm[g + hi] <= 0.0:
+                        hi -= 1
+                    line_lo = min(line_lo, lo)
+                    line_hi = max(line_hi, hi)
     if first < 0:
         # no material, or outside the updated range: copied through
         for row in range(n_rows):
@@ -928,6 +939,13 @@ def _fv_block(
         n_t = w1 - w0 + n_stages + 1
         pitch = width
         mask = ring - 1
+        # Lines are independent 1-D problems, and a line without material anywhere in the
+        # block comes out of every stage unchanged (nothing leaves an empty cell, no
+        # diffusion without material): the stages skip such lines at the block's sides
+        # and the write-out copies them, the same bits.
+        for col in range(nl):
+            if col < line_lo or col > line_hi:
+                VALID[col] = 0.0
     for step in range(n_t):
         t = step if along else w0 + step
         # read rows in (c = q / m is computed once per cell, for the colour stage)
@@ -980,8 +998,8 @@ def _fv_block(
                 bl = np.uint64(((p - 1) & mask) * pitch)
                 bu = np.uint64(((p + 1) & mask) * pitch)
                 gb = np.uint64(b0 + p * g_row)
-                k_lo = np.uint64(0)
-                k_hi = np.uint64(nl)
+                k_lo = np.uint64(line_lo)
+                k_hi = np.uint64(line_hi + 1)
                 rpos = np.uint64(p)
             gs = np.uint64(g_step)
             if stage == 0:
