@@ -251,6 +251,43 @@ def test_finite_volume_matches_twin_with_material_in_a_band(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_finite_volume_leaves_material_outside_the_support_as_it_is(ndim):
+    """Material the flow left behind (m > 0 where the support is 0) takes no flux and no
+    diffusion: it comes out unchanged, and everything else matches the twin (the kernel
+    makes its windows around movable material only)."""
+    rng = np.random.default_rng(150 + ndim)
+    shape = (30, 26, 22)[:ndim]
+    vessel, grids = _ball_vessel(shape, radius=1.2)
+    vessel[(0, -1), ...] = 0
+    spacing = (0.1,) * ndim
+    vel = [2.0 * _smooth(rng, shape) for _ in range(ndim)]
+    dif = [0.05 * np.abs(_smooth(rng, shape)) for _ in range(ndim)]
+    band = sum(np.abs(g) for g in grids) < 0.5
+    m = np.where(vessel > 0, rng.uniform(0.3, 1.0, shape), 0.0)
+    support = (vessel > 0) & (band | (rng.uniform(size=shape) > 0.6))
+    stranded = (m > 0) & ~support  # material where the flow no longer is
+    assert stranded.sum() > 100 and (m > 0)[support].sum() > 100
+    support = support.astype(np.uint8)
+    q = m * rng.uniform(0.0, 1.0, shape)
+    dt = 0.9 * finite_volume_max_dt(vel, spacing, support)
+    n_sub = max(1, diffusion_substeps(dif, spacing, dt))
+    args = (*vel, *dif, support, dt, *spacing)
+    step = _fv_kernel(ndim)
+    twin = reference.fv_step_2d if ndim == 2 else reference.fv_step_3d
+    got = (m, q)
+    want = (m, q)
+    for n in range(3):
+        out = (np.empty(shape), np.empty(shape))
+        step(*got, *out, kernels.fv_workspace(shape), *args, n % 2 == 1, n_sub)
+        got = out
+        want = twin(*want, np.empty(shape), np.empty(shape), None, *args, n % 2 == 1, n_sub)
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-12)
+    assert np.array_equal(got[0][stranded], m[stranded])
+    assert np.array_equal(got[1][stranded], q[stranded])
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_finite_volume_same_bits_on_any_thread_count(ndim):
     """How the sweeps are split between threads changes no bit of the result."""
     rng = np.random.default_rng(160 + ndim)

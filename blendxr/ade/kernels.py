@@ -811,6 +811,17 @@ _FV_BLOCK_BYTES = 1 << 20
 
 
 @njit(**_JIT_INLINE)
+def _movable(sm, vessel, i):
+    """Whether cell i holds material inside the support (``vessel``): the only cells a
+    sweep can change or move from. Material the flow left behind outside the support
+    (faces to it are closed, it takes no diffusion) comes out of every stage unchanged,
+    so windows are made around movable material only and the rest is copied through,
+    the same bits; within a Tote's revolution such stranded material spreads to about as
+    many cells as the bed."""
+    return (sm[i] > 0.0) & (vessel[i] != 0)
+
+
+@njit(**_JIT_INLINE)
 def _ratio(g, p):
     """Zalesak ratio: the share of the harmful antidiffusion ``p`` the slack ``g`` allows."""
     r = max(0.0, min(1.0, g / p))
@@ -871,8 +882,9 @@ def _fv_block(
     n_rows = nl if along else na
     row_len = n2 if along else nl
     pos_hi = np.uint64(max(na - 3, 0))
-    # positions along the sweep holding material: first .. last (-1: none); across the
-    # sweep (axes 0, 1), the lines holding material: line_lo .. line_hi
+    # positions along the sweep holding material that can move: first .. last (-1:
+    # none); across the sweep (axes 0, 1), the lines holding such material: line_lo ..
+    # line_hi (see _movable)
     first = -1
     last = -1
     line_lo = row_len
@@ -882,11 +894,11 @@ def _fv_block(
             if along:
                 gi = b0 + row * g_row
                 lo = 0
-                while lo < n2 and sm[gi + lo] <= 0.0:
+                while lo < n2 and not _movable(sm, vessel, gi + lo):
                     lo += 1
                 if lo < n2:
                     hi = n2 - 1
-                    while sm[gi + hi] <= 0.0:
+                    while not _movable(sm, vessel, gi + hi):
                         hi -= 1
                     first = lo if first < 0 else min(first, lo)
                     last = max(last, hi)
@@ -894,15 +906,15 @@ def _fv_block(
                 g = np.uint64(b0 + row * g_row)
                 n_mat = 0
                 for k in range(np.uint64(0), np.uint64(row_len)):
-                    n_mat += 1 if sm[g + k] > 0.0 else 0
+                    n_mat += 1 if (sm[g + k] > 0.0) & (vessel[g + k] != 0) else 0
                 if n_mat > 0:
                     first = row if first < 0 else first
                     last = row
                     lo = 0
-                    while sm[g + lo] <= 0.0:
+                    while not _movable(sm, vessel, g + lo):
                         lo += 1
                     hi = row_len - 1
-                    while sm[g + hi] <= 0.0:
+                    while not _movable(sm, vessel, g + hi):
                         hi -= 1
                     line_lo = min(line_lo, lo)
                     line_hi = max(line_hi, hi)
