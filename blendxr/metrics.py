@@ -318,16 +318,11 @@ def sample_means(c, fill=None, cell=None, min_fill=0.95):
         scale = "grid cell"
     else:
         factors = _coarsen_factors(c, spatial, cell)
-        scale = f"{float(cell):g} m"
-        if _in_memory(c) and _in_memory(w):
-            out = _block_means(c, w, factors, min_fill)
-            return _finish(out, "c_sample", "concentration of sampling cells",
-                           scale_of_scrutiny=scale, min_fill=min_fill)  # fmt: skip
-        # lazy (dask): xarray's coarsen keeps it lazy
         num = (w * c.fillna(0.0)).coarsen(factors, boundary="trim").sum()
         den = w.coarsen(factors, boundary="trim").sum()
         frac = w.coarsen(factors, boundary="trim").mean()
         mean = num / den.where(den > 0)
+        scale = f"{float(cell):g} m"
     # The small allowance keeps a cell whose fraction is min_fill up to round-off.
     out = mean.where(frac >= min_fill - 1e-12)
     return _finish(
@@ -337,50 +332,6 @@ def sample_means(c, fill=None, cell=None, min_fill=0.95):
         scale_of_scrutiny=scale,
         min_fill=min_fill,
     )
-
-
-def _in_memory(a) -> bool:
-    """True unless ``a`` is a lazy (dask) array."""
-    return not hasattr(a.data, "dask")
-
-
-def _block_means(c, w, factors, min_fill):
-    """:func:`sample_means` of in-memory arrays, in NumPy: the same operations in the same
-    order as the labelled path (``coarsen`` sums over blocks of ``factors`` cells per dim,
-    ends trimmed, block-centre coordinates), so the same numbers, without the dozen
-    labelled operations that took most of a record's time."""
-    # the labelled path's dims: those of w * c (w holds every dim of c)
-    dims = w.dims
-    c = c.transpose(*dims)
-    cv = np.asarray(c.values)
-    wv = np.asarray(w.values)
-    trim = tuple(slice(0, c.sizes[d] // factors[d] * factors[d]) if d in factors
-                 else slice(None) for d in dims)  # fmt: skip
-    shape, axes = [], []
-    for d in dims:
-        if d in factors:
-            shape += [c.sizes[d] // factors[d], factors[d]]
-            axes.append(len(shape) - 1)
-        else:
-            shape.append(c.sizes[d])
-    axes = tuple(axes)
-    weighted = wv * np.where(np.isnan(cv), 0.0, cv)
-    num = weighted[trim].reshape(shape).sum(axis=axes)
-    den = wv[trim].reshape(shape).sum(axis=axes)
-    frac = den / math.prod(factors.values())
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = num / np.where(den > 0, den, np.nan)
-    out = np.where(frac >= min_fill - 1e-12, mean, np.nan)
-    coords = {}
-    for d in dims:
-        if d in c.coords and d in factors:
-            n, f = c.sizes[d] // factors[d], factors[d]
-            values = np.asarray(c[d].values, np.float64)[: n * f]
-            coords[d] = xr.DataArray(values.reshape(n, f).mean(axis=1), dims=d,
-                                     attrs=c[d].attrs)  # fmt: skip
-        elif d in c.coords:
-            coords[d] = c[d]
-    return xr.DataArray(out, dims=dims, coords=coords)
 
 
 def segregation_intensity(c, fill=None, cell=None, min_fill=0.95):

@@ -349,11 +349,6 @@ def test_lazy_results_equal_eager_and_stay_lazy():
         np.testing.assert_allclose(lazy.compute().values, eager.values, rtol=1e-12, err_msg=name)
         for d in eager.coords:
             np.testing.assert_array_equal(lazy[d].values, eager[d].values, err_msg=name)
-    # in memory, sample means take a NumPy path: the same operations as coarsen's
-    lazy = metrics.sample_means(cl, fill=fl, cell=2 * H).compute()
-    eager = metrics.sample_means(c, fill=fill, cell=2 * H)
-    np.testing.assert_array_equal(lazy.values, eager.values)
-    assert lazy.attrs == eager.attrs
     with forbid_compute():
         pos = metrics.thief_positions(fl)
     assert isinstance(pos.x.data, da.Array)
