@@ -816,8 +816,7 @@ def _movable(sm, vessel, i):
     sweep can change or move from. Material the flow left behind outside the support
     (faces to it are closed, it takes no diffusion) comes out of every stage unchanged,
     so windows are made around movable material only and the rest is copied through,
-    the same bits; within a Tote's revolution such stranded material spreads to about as
-    many cells as the bed."""
+    the same bits (how much stranded material a Tote's run holds: docs/numerics.md)."""
     return (sm[i] > 0.0) & (vessel[i] != 0)
 
 
@@ -906,7 +905,7 @@ def _fv_block(
                 g = np.uint64(b0 + row * g_row)
                 n_mat = 0
                 for k in range(np.uint64(0), np.uint64(row_len)):
-                    n_mat += 1 if (sm[g + k] > 0.0) & (vessel[g + k] != 0) else 0
+                    n_mat += 1 if _movable(sm, vessel, g + k) else 0
                 if n_mat > 0:
                     first = row if first < 0 else first
                     last = row
