@@ -16,8 +16,8 @@ Each scheme is compiled on a tiny run first; then two windows are timed. The sho
 is a fixed simulated time (enough for at least 20 steps) with records at its ends only,
 where each phase pair's set-up (stable dt, first reading of its phases) weighs as much as
 the steps; the steady window (Lax-Wendroff and finite-volume, the schemes with targets)
-runs two revolutions with the default records (every 0.25 revolution), the share a long
-run pays for that set-up. Each is run and timed twice (up to four times while other work
+runs two revolutions with the default records (the schema's mixing.output_every), the
+share a long run pays for that set-up. Each is run and timed twice (up to four times while other work
 on the machine slows the runs, see ``_common.best_of``); the fastest run is kept.
 Reported per run: steps, seconds per step, the ``cell_updates_per_s`` attribute of the
 result (cells counted by the driver over the whole ``mix`` call), and an independent
@@ -72,15 +72,16 @@ from _common import (
 from numba import njit, prange  # noqa: E402
 
 import blendxr as bx  # noqa: E402
+from blendxr.scene import default_of  # noqa: E402
 
 CELLS = 100
 MIN_STEPS = 20
 REVOLUTIONS = 0.1  # about 50 steps of either scheme on these flows; doubled if too few
 #: the steady window: a run long enough that each phase pair's set-up (stable dt, first
-#: reading of the phases) is a share a long run also pays, with the default records
-#: (every 0.25 revolution); Lax-Wendroff and finite-volume only (the schemes with targets)
+#: reading of the phases) is a share a long run also pays, with the scene schema's default
+#: records; Lax-Wendroff and finite-volume only (the schemes with targets)
 STEADY_REVOLUTIONS = 2.0
-STEADY_OUTPUT_EVERY = 0.25
+STEADY_OUTPUT_EVERY = default_of("mixing.output_every")
 REPEATS = 2  # timed runs per case and scheme; the fastest is kept
 MAX_REPEATS = 4  # more while every run so far was stalled by other work on the machine
 BUDGET_S = 150.0  # seconds of timed runs per case and scheme, at most

@@ -1402,7 +1402,7 @@ def _transport_value(va, vb, w, a, j, b, jm, jp, dt, span, cap):
 def _transport_velocity(va, vb, w, out, dt, h, cap):
     # Every axis streams through the arrays in memory order: along the last axis each
     # thread takes whole lines; otherwise (a, j) pairs, each with its contiguous b run
-    # (a loop over j outside a, as before, strode through all of memory once per j).
+    # (a loop over j outside a would stride through all of memory once per j).
     n0, n, n2 = va.shape
     if n2 == 1:
         for a in prange(n0):
