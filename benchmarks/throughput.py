@@ -17,8 +17,9 @@ is a fixed simulated time (enough for at least 20 steps) with records at its end
 where each phase pair's set-up (stable dt, first reading of its phases) weighs as much as
 the steps; the steady window (Lax-Wendroff and finite-volume, the schemes with targets)
 runs two revolutions with the default records (the schema's mixing.output_every), the
-share a long run pays for that set-up. Each is run and timed twice (up to four times while other work
-on the machine slows the runs, see ``_common.best_of``); the fastest run is kept.
+share a long run pays for that set-up. Each is run and timed twice (up to four times
+while other work on the machine slows the runs, see ``_common.best_of``); the fastest run
+is kept.
 Reported per run: steps, seconds per step, the ``cell_updates_per_s`` attribute of the
 result (cells counted by the driver over the whole ``mix`` call), and an independent
 figure: steps x material cells / wall time, with the material cells taken from the
