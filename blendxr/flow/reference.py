@@ -241,7 +241,7 @@ def scatter_volume(x, vol, origin, inv_h, shape):
 
 
 def poisson_matrix(code, regularisation):
-    """The sparse matrix of ``projection.laplacian_2d`` / ``_3d`` (no mirror) on the
+    """The sparse matrix of ``projection.assemble_poisson_2d`` / ``_3d`` (no mirror) on the
     material nodes, and their index: links to air see 0, links to walls carry no flux."""
     import scipy.sparse as sp
 
