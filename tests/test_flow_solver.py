@@ -344,6 +344,24 @@ def test_every_revolution_is_compared_with_the_one_before(tmp_path):
     assert again.periodicity_history() == sim.periodicity_history()
 
 
+def test_spin_up_courant_holds_until_revolution_1_ends_and_only_when_it_is_spin_up():
+    # the stable step is linear in the Courant number: 0.8 doubles it while settling and
+    # in revolution 1 of a three-revolution run, then the scene's courant takes over;
+    # the sampling interval is the main courant's either way
+    scene = drum_scene(0.4, revolutions=3)
+    scene["solver"]["spin_up_courant"] = 0.8
+    plain = FlowSimulation(drum_scene(0.4, revolutions=3))
+    sim = FlowSimulation(scene)
+    assert sim.spin_up_end() == pytest.approx(sim.settings.settle_time + sim.period)
+    assert sim.stable_dt() == pytest.approx(2.0 * plain.stable_dt(), rel=1e-12)
+    assert sim.sample_every == plain.sample_every
+    sim.t = sim.spin_up_end()
+    assert sim.courant_now() == sim.settings.courant
+    # two revolutions: revolution 1 is the one compared with the kept one, not spin-up
+    scene["solver"]["revolutions"] = 2
+    assert FlowSimulation(scene).spin_up_end() == 0.0
+
+
 def _by_revolution(scene, revolutions):
     """Run ``scene`` stopping at the end of every revolution; the run and, for each
     revolution, a copy of what the last phase averager held then (volume, momentum,
@@ -370,25 +388,26 @@ def _fields_of(*accumulated, cell_volume):
 def test_flow_averaged_over_revolutions_is_their_volume_weighted_mean():
     # the same run recorded revolution by revolution (average_revolutions = 1) gives each
     # revolution's sums; averaging two revolutions must give the pooled average of
-    # revolutions 3 and 4, and eq. (30) must compare it with the pooled revolutions 1-2
-    scene = drum_scene(0.4, revolutions=4)
+    # revolutions 4 and 5, and eq. (30) must compare it with the pooled revolutions 2-3
+    # (revolution 1, the spin-up of both runs, is sampled alike in both: thinned)
+    scene = drum_scene(0.4, revolutions=5)
     scene["material"] = {"dilation_angle_deg": 0.0}  # past revolution 3 (no warning)
-    single, held = _by_revolution(scene, 4)
-    assert single.last.samples.sum() == held[4][2].sum()  # the last revolution alone
+    single, held = _by_revolution(scene, 5)
+    assert single.last.samples.sum() == held[5][2].sum()  # the last revolution alone
     scene["solver"]["average_revolutions"] = 2
-    pooled, _ = _by_revolution(scene, 4)
+    pooled, _ = _by_revolution(scene, 5)
     flow = pooled.dataset(wall=0.0)
     assert flow.attrs["averaged_revolutions"] == 2
     cell_volume = pooled.settings.output_cell**2
-    fill, vel = _fields_of(held[3], held[4], cell_volume=cell_volume)
+    fill, vel = _fields_of(held[4], held[5], cell_volume=cell_volume)
     np.testing.assert_allclose(flow["fill"].values, fill, rtol=1e-12, atol=1e-15)
     got = np.stack([flow["vx"].values, flow["vy"].values], axis=-1)
     np.testing.assert_allclose(got, vel, rtol=1e-10, atol=1e-14)
-    before = _fields_of(held[1], held[2], cell_volume=cell_volume)
+    before = _fields_of(held[2], held[3], cell_volume=cell_volume)
     expected = periodicity(before[1], vel, before[0], fill)  # a drum: lab frame already
     for c in ("vx", "vy"):
         assert flow.attrs[f"periodicity_{c}"] == pytest.approx(expected[c], rel=1e-9)
-    np.testing.assert_array_equal(flow.attrs["periodicity_history_revolution"], [4])
+    np.testing.assert_array_equal(flow.attrs["periodicity_history_revolution"], [3, 5])
 
 
 def test_averaging_more_revolutions_than_half_the_run_is_refused():

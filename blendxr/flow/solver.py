@@ -94,6 +94,7 @@ class SolverSettings:
     output_cell: float
     per_cell: int
     courant: float
+    spin_up_courant: float | None
     rpm: float
     gravity: float
     settle_time: float
@@ -160,6 +161,9 @@ class SolverSettings:
             output_cell=float(output_cell),
             per_cell=int(s["particles_per_cell"]),
             courant=float(s["courant"]),
+            spin_up_courant=None
+            if s.get("spin_up_courant") is None
+            else float(s["spin_up_courant"]),
             rpm=rpm,
             gravity=float(op["gravity"]),
             settle_time=float(s["settle_time"]),
@@ -454,8 +458,23 @@ class FlowSimulation:
 
     # --- time step --------------------------------------------------------------------
     def stable_dt(self) -> float:
-        """dt = courant * cell / (c_p + |v|max) (DESIGN §4)."""
-        return self.settings.courant * self.grid.h / (self.material.p_wave_speed + self.vmax)
+        """dt = courant * cell / (c_p + |v|max) (DESIGN §4), with ``solver.spin_up_courant``
+        before the end of a spin-up revolution (:meth:`spin_up_end`)."""
+        return self.courant_now() * self.grid.h / (self.material.p_wave_speed + self.vmax)
+
+    def courant_now(self) -> float:
+        s = self.settings
+        if s.spin_up_courant is not None and self.t < self.spin_up_end() - 1e-12:
+            return s.spin_up_courant
+        return s.courant
+
+    def spin_up_end(self) -> float:
+        """The end of the spin-up from rest: of revolution 1 when that revolution is
+        neither the flow kept nor the one compared with it (it feeds only the first row
+        of the eq. (30) history), else the start of the run (no spin-up)."""
+        if not math.isfinite(self.period) or self._block(1) < 2:
+            return 0.0
+        return self.settings.settle_time + self.period
 
     def _body(self, t: float) -> tuple[np.ndarray, float, float]:
         """Gravity in the vessel frame, omega and damping at time t."""
@@ -591,10 +610,10 @@ class FlowSimulation:
 
     def _thinned(self, revolution: int) -> bool:
         """Whether this sample of ``revolution`` is skipped: the spin-up from rest
-        (revolution 1 outside the last two blocks) feeds only the history's first row of
-        eq. (30), so it takes every ``SPIN_UP_THINNING``-th sample (about 50 a phase bin
-        instead of 200; the deposits were a tenth of its steps' cost)."""
-        if revolution != 1 or self._block(1) < 2:
+        (:meth:`spin_up_end`) feeds only the history's first row of eq. (30), so it takes
+        every ``SPIN_UP_THINNING``-th sample (about 50 a phase bin instead of 200; the
+        deposits were a tenth of its steps' cost)."""
+        if revolution != 1 or self.spin_up_end() <= 0.0:
             return False
         return (self.steps // self.sample_every) % SPIN_UP_THINNING != 0
 
@@ -695,7 +714,7 @@ class FlowSimulation:
     def samples_every(self) -> int:
         """Steps between deposits: about 12 samples per phase bin and window."""
         s = self.settings
-        dt = self.stable_dt()
+        dt = s.courant * self.grid.h / (self.material.p_wave_speed + self.vmax)
         if s.rpm > 0:
             window = self.period
         else:
