@@ -180,6 +180,10 @@ class SolverSettings:
         )
 
 
+def _optional_float(value) -> float | None:
+    return None if value is None else float(value)
+
+
 def critical_rpm(vessel, gravity: float) -> float:
     """The speed at which the wall farthest from the rotation axis (the z axis through
     the origin) moves on a circle whose centripetal acceleration equals gravity:
