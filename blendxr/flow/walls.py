@@ -11,8 +11,9 @@ signed distance (``blendxr.vessels.sdf_normal``) has no such bias.
 
 from __future__ import annotations
 
+import math
+
 import numba
-import numpy as np
 from numba import prange
 
 from ..vessels import sdf_normal
@@ -64,13 +65,16 @@ def project_into_vessel(kind, params, x, v, skin, starts, scratch, node_sdf, ori
     d = x.shape[1]
     tasks = starts.shape[0] - 1
     deep = -h * (0.5 * d**0.5 + 1e-6)
+    # the nearest node by a product: where rounding picks the other of two nodes at a
+    # tie, that node is as near, so the test stays exact (the margin above covers it)
+    inv_h = 1.0 / h
     for t in prange(tasks):
         normal = scratch[t]
         count = 0
         for p in range(starts[t], starts[t + 1]):
             node = 0
             for a in range(d):
-                k = int(np.floor((x[p, a] - origin[a]) / h + 0.5))
+                k = int(math.floor((x[p, a] - origin[a]) * inv_h + 0.5))
                 k = min(max(k, 0), shape[a] - 1)
                 node = node * shape[a] + k
             if node_sdf[node] < deep:
