@@ -296,6 +296,16 @@ GROUPS["tote-40-top-bottom_courant_10mm"] = (
     "courant0.2_10mm",
 )
 
+# the spin-up revolution at twice the step (solver.spin_up_courant = 0.8, off by default)
+# on the paper's 40 % top-bottom case at its own 7.5 mm: does the kept third revolution,
+# and so the answer, keep the default's? (the default member shares its flow with the
+# flow-cell group's 7.5 mm member)
+GROUPS["tote-40-top-bottom_spin_up"] = (
+    "tote-40-top-bottom",
+    {"default_7.5mm": {}, "spin_up0.8_7.5mm": {"solver.spin_up_courant": 0.8}},
+    "default_7.5mm",
+)
+
 # the scheme and ADE cells on a paper case's flow (60 % top-bottom, 10 mm, the mean of
 # revolutions 4-6, shared with the revolution group): do the schemes meet there as
 # they do on tote-small?
