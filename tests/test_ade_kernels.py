@@ -241,10 +241,9 @@ def _fv_steps_against_twin(m, q, vel, dif, vessel, spacing, steps=3):
     return got
 
 
-@pytest.mark.parametrize("ndim", [2, 3])
-def test_finite_volume_matches_twin_with_material_in_a_band(ndim):
-    """Material away from every edge: the kernel works on windows around it."""
-    rng = np.random.default_rng(140 + ndim)
+def _ball_with_band(rng, ndim):
+    """A ball vessel closed at both x ends, smooth random velocity and diffusivity, and a
+    band of cells across its middle: (shape, vessel, spacing, vel, dif, band)."""
     shape = (30, 26, 22)[:ndim]
     vessel, grids = _ball_vessel(shape, radius=1.2)
     vessel[(0, -1), ...] = 0
@@ -252,6 +251,14 @@ def test_finite_volume_matches_twin_with_material_in_a_band(ndim):
     vel = [2.0 * _smooth(rng, shape) for _ in range(ndim)]
     dif = [0.05 * np.abs(_smooth(rng, shape)) for _ in range(ndim)]
     band = sum(np.abs(g) for g in grids) < 0.5
+    return shape, vessel, spacing, vel, dif, band
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_finite_volume_matches_twin_with_material_in_a_band(ndim):
+    """Material away from every edge: the kernel works on windows around it."""
+    rng = np.random.default_rng(140 + ndim)
+    shape, vessel, spacing, vel, dif, band = _ball_with_band(rng, ndim)
     m = np.where(band & (vessel > 0), rng.uniform(0.3, 1.0, shape), 0.0)
     q = m * rng.uniform(0.0, 1.0, shape)
     got = _fv_steps_against_twin(m, q, vel, dif, vessel, spacing)
@@ -264,13 +271,7 @@ def test_finite_volume_leaves_material_outside_the_support_as_it_is(ndim):
     diffusion: it comes out unchanged, and everything else matches the twin (the kernel
     makes its windows around movable material only)."""
     rng = np.random.default_rng(150 + ndim)
-    shape = (30, 26, 22)[:ndim]
-    vessel, grids = _ball_vessel(shape, radius=1.2)
-    vessel[(0, -1), ...] = 0
-    spacing = (0.1,) * ndim
-    vel = [2.0 * _smooth(rng, shape) for _ in range(ndim)]
-    dif = [0.05 * np.abs(_smooth(rng, shape)) for _ in range(ndim)]
-    band = sum(np.abs(g) for g in grids) < 0.5
+    shape, vessel, spacing, vel, dif, band = _ball_with_band(rng, ndim)
     m = np.where(vessel > 0, rng.uniform(0.3, 1.0, shape), 0.0)
     support = (vessel > 0) & (band | (rng.uniform(size=shape) > 0.6))
     stranded = (m > 0) & ~support  # material where the flow no longer is
