@@ -238,7 +238,7 @@ def _flow_from(
         "stiffness_scaling": sim.material.stiffness_scaling,
         "p_wave_speed_m_s": sim.material.p_wave_speed,
         "courant": s.courant,
-        "spin_up_courant": s.courant if s.spin_up_courant is None else s.spin_up_courant,
+        "spin_up_courant": s.spin_up_courant,
         "spin_up_end_s": sim.spin_up_end(),
         "dt_last_s": sim.stable_dt(),
         "material_volume_m3": float(sim.particles.vol0.sum()) * sim.copies,

@@ -257,9 +257,9 @@ def scatter_volume_3d(x, vol, origin, inv_h, work, starts, fill):
 # A = -laplace (grid units) on the material nodes, stored compactly: each material
 # node is a row with its diagonal and the rows of its material neighbours. Links to air
 # see phi = 0 (they add to the diagonal only), links to walls and off the grid carry no
-# flux. The conjugate gradients then run over the material nodes alone (a fifth of the
-# Tote's grid) in one serial call: the problem is small enough that launching parallel
-# loops four times an iteration cost more than the arithmetic.
+# flux. The conjugate gradients then run over the material nodes alone in one serial
+# call: on these small grids, launching parallel loops four times an iteration cost more
+# than the arithmetic (docs/flow.md).
 
 #: the most material neighbours a node has (6 in 3-D; the 2-D rows pad with -1)
 NEIGHBOURS = 6

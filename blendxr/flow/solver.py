@@ -94,7 +94,7 @@ class SolverSettings:
     output_cell: float
     per_cell: int
     courant: float
-    spin_up_courant: float | None
+    spin_up_courant: float
     rpm: float
     gravity: float
     settle_time: float
@@ -161,9 +161,8 @@ class SolverSettings:
             output_cell=float(output_cell),
             per_cell=int(s["particles_per_cell"]),
             courant=float(s["courant"]),
-            spin_up_courant=None
-            if s.get("spin_up_courant") is None
-            else float(s["spin_up_courant"]),
+            # unset in the scene: the spin-up takes the run's courant (the schema's word)
+            spin_up_courant=float(s.get("spin_up_courant", s["courant"])),
             rpm=rpm,
             gravity=float(op["gravity"]),
             settle_time=float(s["settle_time"]),
@@ -178,10 +177,6 @@ class SolverSettings:
             average_revolutions=average,
             density_projection=int(s["density_projection"]),
         )
-
-
-def _optional_float(value) -> float | None:
-    return None if value is None else float(value)
 
 
 def critical_rpm(vessel, gravity: float) -> float:
@@ -461,16 +456,17 @@ class FlowSimulation:
             )
 
     # --- time step --------------------------------------------------------------------
-    def stable_dt(self) -> float:
-        """dt = courant * cell / (c_p + |v|max) (DESIGN §4), with ``solver.spin_up_courant``
-        before the end of a spin-up revolution (:meth:`spin_up_end`)."""
-        return self.courant_now() * self.grid.h / (self.material.p_wave_speed + self.vmax)
+    def stable_dt(self, courant: float | None = None) -> float:
+        """dt = courant * cell / (c_p + |v|max) (DESIGN §4); ``courant`` defaults to
+        :meth:`courant_now`."""
+        courant = self.courant_now() if courant is None else courant
+        return courant * self.grid.h / (self.material.p_wave_speed + self.vmax)
 
     def courant_now(self) -> float:
+        """``solver.spin_up_courant`` before the end of a spin-up revolution
+        (:meth:`spin_up_end`), else ``solver.courant``."""
         s = self.settings
-        if s.spin_up_courant is not None and self.t < self.spin_up_end() - 1e-12:
-            return s.spin_up_courant
-        return s.courant
+        return s.spin_up_courant if self.t < self.spin_up_end() - 1e-12 else s.courant
 
     def spin_up_end(self) -> float:
         """The end of the spin-up from rest: of revolution 1 when that revolution is
@@ -615,8 +611,7 @@ class FlowSimulation:
     def _thinned(self, revolution: int) -> bool:
         """Whether this sample of ``revolution`` is skipped: the spin-up from rest
         (:meth:`spin_up_end`) feeds only the history's first row of eq. (30), so it takes
-        every ``SPIN_UP_THINNING``-th sample (about 50 a phase bin instead of 200; the
-        deposits were a tenth of its steps' cost)."""
+        every ``SPIN_UP_THINNING``-th sample."""
         if revolution != 1 or self.spin_up_end() <= 0.0:
             return False
         return (self.steps // self.sample_every) % SPIN_UP_THINNING != 0
@@ -718,7 +713,7 @@ class FlowSimulation:
     def samples_every(self) -> int:
         """Steps between deposits: about 12 samples per phase bin and window."""
         s = self.settings
-        dt = s.courant * self.grid.h / (self.material.p_wave_speed + self.vmax)
+        dt = self.stable_dt(s.courant)  # the kept revolutions' step, spin-up or not
         if s.rpm > 0:
             window = self.period
         else:
