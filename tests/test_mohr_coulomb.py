@@ -501,29 +501,73 @@ def test_closed_form_eigensolver_is_accurate_to_round_off(spectrum):
         np.testing.assert_allclose(a @ vectors, vectors * values, rtol=0, atol=1e-14 * scale)
 
 
+@pytest.mark.parametrize("contact", [False, True], ids=["no-contact", "lost-contact"])
+def test_batched_trial_is_the_scalar_trial_bit_for_bit(contact):
+    # trial_batch (the SIMD loop of the 3-D G2P) against trial_stress particle by
+    # particle: the same operations in the same order, so the same bits, with gaps that
+    # a compression closes in part, closes completely, or that an extension leaves open
+    rng = np.random.default_rng(29)
+    n = 50
+    sig, L = random_states(rng, n, False)
+    L[: n // 2] -= np.eye(3) * rng.uniform(0.0, 3.0, (n // 2, 1, 1))  # compressions
+    gaps = rng.choice([0.0, 1e-5, 1e-3, 0.5], n)
+    old = np.array([[s[i, j] for s in sig] for i, j in STRESS_ROWS])
+    grad = L.reshape(n, 9).T.copy()
+    trial = np.full((7, n), np.nan)
+    gap = gaps.copy()
+    mc.trial_batch(old, grad, trial, gap, 0, n, DT, LAM, G, contact)
+    for p in range(n):
+        s = tuple(old[:, p])
+        want, want_gap = mc.trial_stress(s, tuple(L[p].reshape(-1)), DT, LAM, G, gaps[p], contact)
+        assert tuple(trial[:6, p]) == want
+        assert gap[p] == want_gap
+    closed = gap < gaps
+    assert contact == closed.any() and np.all(gap >= 0.0)
+
+
+def _batched_returns(trials, width, mat, cutoff):
+    """Stresses and codes of eigh3_batch + return_batch over blocks of ``width`` trials."""
+    K, G, sin_phi, cos_phi, c, sin_psi, _ = mat
+    lam = K - 2.0 * G / 3.0
+    n = len(trials)
+    stress = np.zeros((n, 3, 3))
+    codes = np.full(n, -9, np.int8)
+    gap = np.zeros(n)
+    work = tuple(w[0] for w in mc.batch_work(1, width))
+    for lo in range(0, n, width):
+        m = min(width, n - lo)
+        for w in work:
+            w[...] = np.nan  # nothing may be read that this block did not write
+        for r, (i, j) in enumerate(STRESS_ROWS):
+            work[0][r, :m] = trials[lo : lo + m, i, j]
+        mc.eigh3_batch(*work[:5], m)
+        mc.return_batch(lo, m, work[0], work[2], work[3], work[4], work[5], work[6], stress,
+                        codes, gap, False, lam, G, sin_phi, cos_phi, c, sin_psi,
+                        cutoff)  # fmt: skip
+    return stress, codes, gap
+
+
+STRESS_ROWS = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+
+
+@pytest.mark.parametrize("width", [mc.BATCH_BLOCK, 37])
 @pytest.mark.parametrize("name", list(MATERIALS))
-def test_batched_return_matches_the_scalar_return(name):
+def test_batched_return_matches_the_scalar_return(name, width):
     # the SIMD block path of the 3-D G2P (eigh3_batch + return_batch) against the scalar
     # general return, on every region's trials and random ones, and on trials beyond
-    # SAFE_RANGE, which return_batch must send to the rescaling scalar decomposition
+    # SAFE_RANGE, which return_batch must send to the rescaling scalar decomposition;
+    # blocks of BATCH_BLOCK take the vectorised elastic and plane returns, blocks of
+    # another width the same steps unvectorised, and both end in partial blocks
     mat = MATERIALS[name]
     K, G, sin_phi, cos_phi, c, sin_psi, cutoff = mat
     lam = K - 2.0 * G / 3.0
     rng = np.random.default_rng(17)
     built, _, _ = constructed_states(rng, 8, mat, False)
-    sig, _ = random_states(rng, 100, False)
+    sig, _ = random_states(rng, 100 + mc.BATCH_BLOCK, False)
     trials = np.concatenate([built, sig, sig[:5] * 1e95])
     n = len(trials)
-    work = tuple(w[0] for w in mc.batch_work(1, n))
-    rows = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
-    for r, (i, j) in enumerate(rows):
-        work[0][r, :] = trials[:, i, j]
-    mc.eigh3_batch(*work, n)
-    stress = np.zeros((n, 3, 3))
-    codes = np.full(n, -9, np.int8)
-    gap = np.zeros(n)
-    mc.return_batch(0, n, work[0], work[2], work[3], work[4], stress, codes, gap, False,
-                    lam, G, sin_phi, cos_phi, c, sin_psi, cutoff)  # fmt: skip
+    rows = STRESS_ROWS
+    stress, codes, gap = _batched_returns(trials, width, mat, cutoff)
     for p in range(n):
         s = tuple(trials[p][i, j] for i, j in rows)
         want, code = mc._return_general(s, lam, G, sin_phi, cos_phi, c, sin_psi, cutoff)

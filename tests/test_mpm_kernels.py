@@ -89,10 +89,14 @@ G2P_MATERIAL = (*MATERIAL, 1.0, 0.0, 1.0, 0.0)
 RATE = (0.26, 0.279, 1.0)
 
 
-def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None, mass=None):
+def _g2p(
+    d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=None, mass=None, block=16
+):
     """Run the numba G2P on copies; return (x, v, C, vol, J, stress, codes, gap).
 
-    ``mass``: the node masses (default none: no packing bounds the contact gap)."""
+    ``mass``: the node masses (default none: no packing bounds the contact gap);
+    ``block``: particles per block of the batched 3-D stress update (16: full and
+    partial blocks; ``G2P_BLOCK``: the vectorised returns)."""
     if stress is None:
         stress = np.zeros((len(x), 3, 3))
     if gap is None:
@@ -101,9 +105,9 @@ def _g2p(d, x, v, C, vol, J, vel, dt, stress=None, material=G2P_MATERIAL, gap=No
         mass = np.zeros(vel.shape[:-1])
     x, v, C, vol, J, stress, gap = (a.copy() for a in (x, v, C, vol, J, stress, gap))
     codes = np.full(len(x), -9, np.int8)
-    # two chunks in blocks of 16: full and partial blocks of the batched 3-D stress update
+    # two chunks in blocks of the batched 3-D stress update
     starts = kernels.chunk_starts(len(x), 2)
-    work = tuple(np.full(w.shape, np.nan) for w in mohr_coulomb.batch_work(2, 16))
+    work = tuple(np.full(w.shape, np.nan) for w in mohr_coulomb.batch_work(2, block))
     G2P[d](
         x, v, C, vol, J, gap, stress, codes, vel, mass, ORIGIN[d], INV_H, dt, material, starts,
         work,
@@ -324,8 +328,9 @@ def test_block_on_incline_accelerates_at_g_sin_minus_mu_cos():
 
 
 @DIMS
+@pytest.mark.parametrize("block", [16, kernels.G2P_BLOCK])
 @pytest.mark.parametrize("rate", [None, RATE], ids=["mohr-coulomb", "mu-of-I"])
-def test_g2p_matches_twin_with_the_stress_update(d, rate):
+def test_g2p_matches_twin_with_the_stress_update(d, rate, block):
     rng = np.random.default_rng(7)
     x, v, C, _, vol, _ = _particles(d, seed=7)
     vel = rng.normal(0.0, 0.5, (*SHAPES[d], d))
@@ -340,7 +345,7 @@ def test_g2p_matches_twin_with_the_stress_update(d, rate):
     if d == 2:
         stress[:, 2, :2] = stress[:, :2, 2] = 0.0  # plane strain: no out-of-plane shear
     material = G2P_MATERIAL[:8] + (RATE if rate else (0.0, 1.0, 0.0))
-    got = _g2p(d, x, v, C, vol, J, vel, dt, stress, material=material)
+    got = _g2p(d, x, v, C, vol, J, vel, dt, stress, material=material, block=block)
     expected = reference.g2p(
         x, v, C, vol, J, vel, ORIGIN[d], INV_H, dt, stress, MATERIAL, rate=rate
     )

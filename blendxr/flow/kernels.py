@@ -75,12 +75,13 @@ import numpy as np
 from numba import njit, prange
 
 from .mohr_coulomb import (
+    BATCH_BLOCK,
     eigh3_batch,
     rate_friction,
     read_stress,
     return_batch,
     stress_step,
-    trial_stress,
+    trial_batch,
     write_stress,
 )
 
@@ -115,9 +116,9 @@ _JIT_SERIAL = {"cache": True, "fastmath": False, "error_model": "numpy"}
 # P2G and G2P run their prange over chunks of particles and call serial helpers per
 # chunk: a small parallel loop body compiles much faster than a large one.
 
-#: Particles per block of the 3-D G2P's batched stress update: its work arrays (21 rows
-#: of float64) then take 21 KiB, within a 32 KiB L1 data cache.
-G2P_BLOCK = 128
+#: Particles per block of the 3-D G2P's batched stress update
+#: (:data:`blendxr.flow.mohr_coulomb.BATCH_BLOCK`).
+G2P_BLOCK = BATCH_BLOCK
 
 
 # ---------------------------------------------------------------------------------------
@@ -353,6 +354,10 @@ def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gq):
     nx, ny, nz = gq.shape[0], gq.shape[1], gq.shape[2]
     h = 1.0 / inv_h
     stress_scale = 4.0 * inv_h * inv_h * dt  # dt * D^-1
+    # unsigned offsets into the flat grid: no index needs a negative-index check
+    flat = gq.reshape(-1)
+    line_x = np.uint64(ny * nz * 4)
+    line_y = np.uint64(nz * 4)
     for p in range(lo, hi):
         bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
         by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
@@ -389,14 +394,16 @@ def _p2g_chunk_3d(lo, hi, x, v, C, m, vol, stress, origin, inv_h, dt, bulk, gq):
                 pb2 = pa2 + q21 * dy
                 wab = wx[a] * wy[b]
                 j = by + b
+                # the line of three nodes along z: twelve adjacent numbers of the flat grid
+                q = np.uint64(i) * line_x + np.uint64(j) * line_y + np.uint64(4 * bz)
                 for c in range(3):
                     dz = c - rz
                     w = wab * wz[c]
-                    k = bz + c
-                    gq[i, j, k, 0] += w * mp
-                    gq[i, j, k, 1] += w * (pb0 + q02 * dz)
-                    gq[i, j, k, 2] += w * (pb1 + q12 * dz)
-                    gq[i, j, k, 3] += w * (pb2 + q22 * dz)
+                    k = q + np.uint64(4 * c)
+                    flat[k] += w * mp
+                    flat[k + np.uint64(1)] += w * (pb0 + q02 * dz)
+                    flat[k + np.uint64(2)] += w * (pb1 + q12 * dz)
+                    flat[k + np.uint64(3)] += w * (pb2 + q22 * dz)
 
 
 @njit(**_JIT)
@@ -878,15 +885,21 @@ def _g2p_block_3d(
     inv_h,
     dt,
     trial,
+    before,
+    grad,
     material,
 ):
-    """G2P of particles lo:hi and their elastic trial stresses into ``trial[:, p - lo]``
-    (after a compression closed their contact gaps, which ``gap`` receives)."""
-    G = material[1]
-    lam = material[0] - 2.0 * G / 3.0
+    """G2P of particles lo:hi: their stresses into ``before[:, p - lo]`` and their
+    velocity gradients into ``grad[:, p - lo]``, for :func:`trial_batch` (and with a
+    rate-dependent friction each particle's sin φ into ``trial[6, p - lo]``)."""
     contact = material[7] > 0.0
     nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
+    # node velocities as one flat array with unsigned offsets: a line of three nodes
+    # along z is nine adjacent numbers, and no index needs a negative-index check
+    flat = vel.reshape(-1)
+    line_x = np.uint64(ny * nz * 3)
+    line_y = np.uint64(nz * 3)
     for p in range(lo, hi):
         bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
         by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
@@ -911,15 +924,16 @@ def _g2p_block_3d(
             for b in range(3):
                 j = by + b
                 wab = wx[a] * wy[b]
-                u00 = vel[i, j, bz, 0]
-                u01 = vel[i, j, bz, 1]
-                u02 = vel[i, j, bz, 2]
-                u10 = vel[i, j, bz + 1, 0]
-                u11 = vel[i, j, bz + 1, 1]
-                u12 = vel[i, j, bz + 1, 2]
-                u20 = vel[i, j, bz + 2, 0]
-                u21 = vel[i, j, bz + 2, 1]
-                u22 = vel[i, j, bz + 2, 2]
+                q = np.uint64(i) * line_x + np.uint64(j) * line_y + np.uint64(3 * bz)
+                u00 = flat[q]
+                u01 = flat[q + np.uint64(1)]
+                u02 = flat[q + np.uint64(2)]
+                u10 = flat[q + np.uint64(3)]
+                u11 = flat[q + np.uint64(4)]
+                u12 = flat[q + np.uint64(5)]
+                u20 = flat[q + np.uint64(6)]
+                u21 = flat[q + np.uint64(7)]
+                u22 = flat[q + np.uint64(8)]
                 l0 = wab * (wz0 * u00 + wz1 * u10 + wz2 * u20)
                 l1 = wab * (wz0 * u01 + wz1 * u11 + wz2 * u21)
                 l2 = wab * (wz0 * u02 + wz1 * u12 + wz2 * u22)
@@ -991,10 +1005,11 @@ def _g2p_block_3d(
         v[p, 2] = v2
         l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
         old = read_stress(stress, p)
-        s, gap[p] = trial_stress(old, l, dt, lam, G, gap[p], contact)
         k = p - lo
         for r in range(6):
-            trial[r, k] = s[r]
+            before[r, k] = old[r]
+        for r in range(9):
+            grad[r, k] = l[r]
         if material[8] > 0.0:
             trial[6, k] = rate_friction(
                 l, old, material[2], material[3], material[8], material[9], material[10]
@@ -1100,16 +1115,17 @@ def g2p_3d(
         I0, inertial_scale)`` as for :func:`g2p_2d`.
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
-    work : tuple of 5 ndarray of float64, shapes (T, rows, B)
+    work : tuple of 7 ndarray of float64, shapes (T, rows, B)
         Per-task work arrays, ``blendxr.flow.mohr_coulomb.batch_work(T, B)``: each task
-        runs its chunk in blocks of B particles, gathering and forming the elastic trial
-        stresses of a block, then decomposing them all at once with the SIMD loops of
+        runs its chunk in blocks of B particles, gathering the velocities and gradients
+        of a block, then forming its elastic trial stresses and decomposing them all at
+        once with the SIMD loops of :func:`blendxr.flow.mohr_coulomb.trial_batch` and
         :func:`blendxr.flow.mohr_coulomb.eigh3_batch`, then returning them.
     """
     K, G = material[0], material[1]
     lam = K - 2.0 * G / 3.0
     contact = material[7] > 0.0
-    trial, alpha, e, uw, out = work
+    trial, alpha, e, uw, out, grad, ret = work
     block = trial.shape[2]
     for t in prange(starts.shape[0] - 1):
         for lo in range(starts[t], starts[t + 1], block):
@@ -1117,11 +1133,14 @@ def g2p_3d(
             n = hi - lo
             _g2p_block_3d(
                 lo, hi, x, v, C, vol, J, gap, stress, vel, mass, origin, inv_h, dt, trial[t],
-                material,
+                uw[t], grad[t], material,
             )  # fmt: skip
+            # the stresses before the step wait in uw, which eigh3_batch fills next
+            trial_batch(uw[t], grad[t], trial[t], gap, lo, n, dt, lam, G, contact)
             eigh3_batch(trial[t], alpha[t], e[t], uw[t], out[t], n)
             return_batch(
-                lo, n, trial[t], e[t], uw[t], out[t], stress, codes, gap, contact, lam, G,
+                lo, n, trial[t], e[t], uw[t], out[t], grad[t], ret[t], stress, codes, gap, contact,
+                lam, G,
                 material[2], material[3], material[4], material[5], material[6],
                 material[8] > 0.0,
             )  # fmt: skip

@@ -96,6 +96,7 @@ from numba import njit, prange
 
 __all__ = [
     "APEX",
+    "BATCH_BLOCK",
     "BATCH_ROWS",
     "EDGE_COMPRESSION",
     "EDGE_EXTENSION",
@@ -754,18 +755,26 @@ def rate_friction(l, s, sin_phi, cos_phi, rise, i0, inertial_scale):
 # rescaling: return_batch sends matrices outside SAFE_RANGE to _eigh3.
 # --------------------------------------------------------------------------------------
 
-#: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`).
-BATCH_ROWS = (7, 1, 3, 6, 5)  # the trials' 7th row: each particle's sin(phi)
+#: Particles per block of the batched stress update (the 3-D G2P's): the block's work
+#: arrays then fit in a 32 KiB L1 data cache. Blocks of this width take the SIMD path of
+#: :func:`return_batch`'s elastic and plane returns; other widths the same steps unvectorised.
+BATCH_BLOCK = 128
+
+#: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`); the last,
+#: the velocity gradients of the block, is read by :func:`trial_batch`.
+BATCH_ROWS = (7, 1, 3, 6, 5, 9, 7)  # the trials' 7th row: each particle's sin(phi)
 
 
 def batch_work(threads, block):
     """Work arrays of :func:`eigh3_batch` for ``threads`` chunks of ``block`` particles.
 
-    Returns a tuple of five float64 arrays of shape (threads, rows, block): the trial
+    Returns a tuple of seven float64 arrays of shape (threads, rows, block): the trial
     stresses (6 rows: xx, yy, zz, xy, xz, yz, then a 7th for the particle's sin φ under
     a rate-dependent friction, :func:`rate_friction`), the far eigenvalue, its eigenvector, the
-    orthonormal pair spanning the plane orthogonal to it, and the eigenvalues with the
-    2×2 rotation (far, larger, smaller, c, s).
+    orthonormal pair spanning the plane orthogonal to it, the eigenvalues with the
+    2×2 rotation (far, larger, smaller, c, s), the velocity gradients (9 rows, row by
+    row) from which :func:`trial_batch` forms the trials, and the stresses of the
+    elastic and plane returns (6 rows, then their codes) of :func:`return_batch`.
     """
     return tuple(np.zeros((threads, rows, block)) for rows in BATCH_ROWS)
 
@@ -820,6 +829,46 @@ def eigh3_batch(trial, alpha, e, uw, out, n):
 
 
 @njit(**_JIT)
+def _batch_close_gaps(grad, gap, lo, n, dt):
+    for i in range(n):
+        l = (
+            grad[0, i], grad[1, i], grad[2, i], grad[3, i], grad[4, i], grad[5, i],
+            grad[6, i], grad[7, i], grad[8, i],
+        )  # fmt: skip
+        l, gap[lo + i] = close_gap(l, dt, gap[lo + i])
+        grad[0, i], grad[4, i], grad[8, i] = l[0], l[4], l[8]
+
+
+@njit(**_JIT)
+def _batch_trial(old, grad, trial, n, dt, lam, G):
+    for i in range(n):
+        l = (
+            grad[0, i], grad[1, i], grad[2, i], grad[3, i], grad[4, i], grad[5, i],
+            grad[6, i], grad[7, i], grad[8, i],
+        )  # fmt: skip
+        s = (old[0, i], old[1, i], old[2, i], old[3, i], old[4, i], old[5, i])
+        t = _elastic_increment(_rotate(_spin_rotation(l, dt), s), l, dt, lam, G)
+        trial[0, i], trial[1, i], trial[2, i] = t[0], t[1], t[2]
+        trial[3, i], trial[4, i], trial[5, i] = t[3], t[4], t[5]
+
+
+@njit(**_JIT)
+def trial_batch(old, grad, trial, gap, lo, n, dt, lam, G, contact):
+    """Elastic trials of a block (a SIMD loop, as :func:`eigh3_batch`).
+
+    ``old`` (6, B) holds the stresses of particles ``lo`` .. ``lo + n - 1`` and ``grad``
+    (9, B) their velocity gradients row by row; rows 0..5 of ``trial`` receive
+    :func:`trial_stress` of each, the same values. With ``contact`` a compression first
+    closes the particle's gap ``gap[lo + i]`` (:func:`close_gap`; ``grad`` is changed as
+    the trial sees it). Inputs and outputs are different arrays, so that LLVM can
+    vectorise the loop (in place, it cannot tell the rows apart).
+    """
+    if contact:
+        _batch_close_gaps(grad, gap, lo, n, dt)
+    _batch_trial(old, grad, trial, n, dt, lam, G)
+
+
+@njit(**_JIT)
 def read_stress(stress, p):
     """Particle p's symmetric stress from an (N, 3, 3) array as a 6-tuple."""
     return _read(stress[p])
@@ -832,26 +881,126 @@ def write_stress(stress, p, s):
 
 
 @njit(**_JIT)
-def return_batch(lo, n, trial, e, uw, out, stress, codes, gap, contact, lam, G, sin_phi,
+def _batch_vectors(e, uw, out, vec, n):
+    for i in range(n):
+        (vec[0, i], vec[1, i], vec[2, i], vec[3, i], vec[4, i], vec[5, i], vec[6, i], vec[7, i],
+         vec[8, i]) = _vectors(
+            e[0, i], e[1, i], e[2, i], uw[0, i], uw[1, i], uw[2, i],
+            uw[3, i], uw[4, i], uw[5, i], out[3, i], out[4, i],
+        )  # fmt: skip
+
+
+@njit(inline="always", **_JIT)
+def _plane_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, cohesion, sin_psi,
+                   tension_cutoff, rate_dependent):  # fmt: skip
+    """The elastic and plane returns of a block, without a branch (a SIMD loop).
+
+    The same steps and values as :func:`_return_with_eigen` where it ends in
+    :data:`ELASTIC` or :data:`PLANE` (no tension cap, not hydrostatic, the trial inside
+    :data:`SAFE_RANGE`): row 0..5 of ``ret`` receive the stress and row 6 the code; every
+    other trial gets code -1 and is returned by the scalar path. The sort of
+    :func:`_order3` is written out, as selects, for eigenvalues (far, larger, smaller)
+    with larger >= smaller, as :func:`eigh3_batch` gives them (the fast path checks it).
+
+    The work arrays come flat, row r of each at ``r * width``: with ``width`` a constant
+    where the function is inlined, LLVM sees that the rows of an array do not overlap
+    and vectorises the loop (with the rows' stride known only at run time it cannot
+    tell them apart and gives up).
+    """
+    r_iso = lam * ((1.0 + sin_psi) + 0.0 + -(1.0 - sin_psi))
+    r1 = (r_iso + 2.0 * G * (1.0 + sin_psi), r_iso + 2.0 * G * 0.0,
+          r_iso + 2.0 * G * -(1.0 - sin_psi))  # fmt: skip
+    for i in range(n):
+        sp = trial[6 * width + i] if rate_dependent else sin_phi
+        cp = math.sqrt(1.0 - sp * sp) if rate_dependent else cos_phi
+        s = (
+            trial[i], trial[width + i], trial[2 * width + i], trial[3 * width + i],
+            trial[4 * width + i], trial[5 * width + i],
+        )  # fmt: skip
+        size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
+        x0, x1, x2 = vec[i], vec[width + i], vec[2 * width + i]
+        y0, y1, y2 = vec[3 * width + i], vec[4 * width + i], vec[5 * width + i]
+        z0, z1, z2 = vec[6 * width + i], vec[7 * width + i], vec[8 * width + i]
+        e0, e1, e2 = out[i], out[width + i], out[2 * width + i]
+        # _order3 on (far, larger, smaller): the far one first, second or last
+        far_first = e0 >= e1
+        far_last = (not far_first) & (e2 > e0)
+        t1 = e0 if far_first else e1
+        t2 = e1 if far_first else (e2 if far_last else e0)
+        t3 = e0 if far_last else e2
+        a1 = (1.0 + sp, 0.0, -(1.0 - sp))
+        f1 = _dot(a1, (t1, t2, t3)) - 2.0 * cohesion * cp
+        elastic = f1 <= 0.0
+        g = f1 / _dot(a1, r1)
+        p1, p2, p3 = t1 - g * r1[0], t2 - g * r1[1], t3 - g * r1[2]
+        plane = (p1 >= p2) & (p2 >= p3) & (p1 != p3)
+        top = t1 if elastic else p1
+        apex = cohesion * cp / sp
+        cap = (apex if apex < tension_cutoff else tension_cutoff) if sp > 0.0 else tension_cutoff
+        capped = (tension_cutoff > 0.0) & (top > cap)
+        in_range = (SAFE_RANGE[0] <= size) & (size <= SAFE_RANGE[1]) & (e1 >= e2)
+        fast = (elastic | plane) & (not capped) & in_range
+        d1, d2, d3 = p1 - t1, p2 - t2, p3 - t3
+        dx = d1 if far_first else (d3 if far_last else d2)  # the far eigenvector's
+        dy = d2 if far_first else d1  # the larger one's
+        dz = d2 if far_last else d3  # the smaller one's
+        new = (
+            s[0] + dx * x0 * x0 + dy * y0 * y0 + dz * z0 * z0,
+            s[1] + dx * x1 * x1 + dy * y1 * y1 + dz * z1 * z1,
+            s[2] + dx * x2 * x2 + dy * y2 * y2 + dz * z2 * z2,
+            s[3] + dx * x0 * x1 + dy * y0 * y1 + dz * z0 * z1,
+            s[4] + dx * x0 * x2 + dy * y0 * y2 + dz * z0 * z2,
+            s[5] + dx * x1 * x2 + dy * y1 * y2 + dz * z1 * z2,
+        )
+        for r in range(6):
+            ret[r * width + i] = s[r] if elastic else new[r]
+        ret[6 * width + i] = (float(ELASTIC) if elastic else float(PLANE)) if fast else -1.0
+
+
+@njit(**_JIT)
+def return_batch(lo, n, trial, e, uw, out, vec, ret, stress, codes, gap, contact, lam, G, sin_phi,
                  cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent=False):  # fmt: skip
     """Mohr–Coulomb return of the block decomposed by :func:`eigh3_batch`.
 
     Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i``,
     ``codes`` its return code and, if ``contact``, ``gap`` (N) what an apex or cap return
-    adds to it (:func:`open_gap`). Trials outside :data:`SAFE_RANGE` are decomposed again by the
-    scalar, rescaling :func:`_eigh3`. With ``rate_dependent`` each particle's sin φ is
-    ``trial[6, i]`` (:func:`rate_friction`) instead of ``sin_phi``.
+    adds to it (:func:`open_gap`). The work array ``vec`` (9, B) receives the eigenvectors
+    (x, y, z components of the far, larger and smaller one's). Elastic and plane returns
+    are computed for the whole block at once (:func:`_plane_returns`, into the work
+    array ``ret`` (7, B)), the others one by one. Trials outside :data:`SAFE_RANGE` are
+    decomposed again by the scalar, rescaling :func:`_eigh3`. With ``rate_dependent``
+    each particle's sin φ is ``trial[6, i]`` (:func:`rate_friction`) instead of
+    ``sin_phi``.
     """
+    _batch_vectors(e, uw, out, vec, n)
+    flat_trial, flat_vec = trial.reshape(-1), vec.reshape(-1)
+    flat_out, flat_ret = out.reshape(-1), ret.reshape(-1)
+    if trial.shape[1] == BATCH_BLOCK:  # a constant width: the SIMD loop
+        _plane_returns(
+            flat_trial, flat_vec, flat_out, flat_ret, BATCH_BLOCK, n, lam, G, sin_phi,
+            cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent,
+        )  # fmt: skip
+    else:
+        _plane_returns(
+            flat_trial, flat_vec, flat_out, flat_ret, trial.shape[1], n, lam, G, sin_phi,
+            cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent,
+        )  # fmt: skip
     for i in range(n):
+        if ret[6, i] >= 0.0:
+            # elastic or plane: the gap is unchanged (open_gap)
+            write_stress(stress, lo + i, (ret[0, i], ret[1, i], ret[2, i], ret[3, i], ret[4, i],
+                                          ret[5, i]))  # fmt: skip
+            codes[lo + i] = np.int8(ret[6, i])
+            continue
         if rate_dependent:
             sin_phi = trial[6, i]
             cos_phi = math.sqrt(1.0 - sin_phi * sin_phi)
         s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
         size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
         if SAFE_RANGE[0] <= size <= SAFE_RANGE[1]:
-            eig = (out[0, i], out[1, i], out[2, i]) + _vectors(
-                e[0, i], e[1, i], e[2, i], uw[0, i], uw[1, i], uw[2, i],
-                uw[3, i], uw[4, i], uw[5, i], out[3, i], out[4, i],
+            eig = (
+                out[0, i], out[1, i], out[2, i], vec[0, i], vec[1, i], vec[2, i],
+                vec[3, i], vec[4, i], vec[5, i], vec[6, i], vec[7, i], vec[8, i],
             )  # fmt: skip
         else:
             eig = _eigh3(s)
