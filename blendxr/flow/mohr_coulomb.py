@@ -891,25 +891,26 @@ def _batch_vectors(e, uw, out, vec, n):
 
 
 @njit(inline="always", **_JIT)
-def _plane_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, cohesion, sin_psi,
+def _block_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, cohesion, sin_psi,
                    tension_cutoff, rate_dependent):  # fmt: skip
-    """The elastic and plane returns of a block, without a branch (a SIMD loop).
+    """The Mohr–Coulomb returns of a block, without a branch (a SIMD loop).
 
-    The same steps and values as :func:`_return_with_eigen` where it ends in
-    :data:`ELASTIC` or :data:`PLANE` (no tension cap, not hydrostatic, the trial inside
-    :data:`SAFE_RANGE`): row 0..5 of ``ret`` receive the stress and row 6 the code; every
-    other trial gets code -1 and is returned by the scalar path. The sort of
+    The steps and values of :func:`_return_with_eigen` (through
+    :func:`_mohr_coulomb_return`: elastic, main plane, either edge, apex), every outcome
+    computed and the scalar path's one selected: row 0..5 of ``ret`` receive the stress
+    and row 6 the code. A trial that meets the tension cap or lies outside
+    :data:`SAFE_RANGE` gets code -1 and is returned by the scalar path. The sort of
     :func:`_order3` is written out, as selects, for eigenvalues (far, larger, smaller)
-    with larger >= smaller, as :func:`eigh3_batch` gives them (the fast path checks it).
+    with larger >= smaller, as :func:`eigh3_batch` gives them (checked here too).
 
     The work arrays come flat, row r of each at ``r * width``: with ``width`` a constant
     where the function is inlined, LLVM sees that the rows of an array do not overlap
     and vectorises the loop (with the rows' stride known only at run time it cannot
     tell them apart and gives up).
     """
-    r_iso = lam * ((1.0 + sin_psi) + 0.0 + -(1.0 - sin_psi))
-    r1 = (r_iso + 2.0 * G * (1.0 + sin_psi), r_iso + 2.0 * G * 0.0,
-          r_iso + 2.0 * G * -(1.0 - sin_psi))  # fmt: skip
+    r1 = _elastic_direction((1.0 + sin_psi, 0.0, -(1.0 - sin_psi)), lam, G)
+    rc = _elastic_direction((0.0, 1.0 + sin_psi, -(1.0 - sin_psi)), lam, G)  # edge σ1 = σ2
+    rx = _elastic_direction((1.0 + sin_psi, -(1.0 - sin_psi), 0.0), lam, G)  # edge σ2 = σ3
     for i in range(n):
         sp = trial[6 * width + i] if rate_dependent else sin_phi
         cp = math.sqrt(1.0 - sp * sp) if rate_dependent else cos_phi
@@ -925,22 +926,64 @@ def _plane_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, coh
         # _order3 on (far, larger, smaller): the far one first, second or last
         far_first = e0 >= e1
         far_last = (not far_first) & (e2 > e0)
-        t1 = e0 if far_first else e1
-        t2 = e1 if far_first else (e2 if far_last else e0)
-        t3 = e0 if far_last else e2
+        t = (
+            e0 if far_first else e1,
+            e1 if far_first else (e2 if far_last else e0),
+            e0 if far_last else e2,
+        )
+        # _mohr_coulomb_return, every branch
+        k = 2.0 * cohesion * cp
         a1 = (1.0 + sp, 0.0, -(1.0 - sp))
-        f1 = _dot(a1, (t1, t2, t3)) - 2.0 * cohesion * cp
+        f1 = _dot(a1, t) - k
         elastic = f1 <= 0.0
         g = f1 / _dot(a1, r1)
-        p1, p2, p3 = t1 - g * r1[0], t2 - g * r1[1], t3 - g * r1[2]
-        plane = (p1 >= p2) & (p2 >= p3) & (p1 != p3)
-        top = t1 if elastic else p1
+        p1, p2, p3 = t[0] - g * r1[0], t[1] - g * r1[1], t[2] - g * r1[2]
+        plane = (p1 >= p2) & (p2 >= p3)
+        both = (p1 < p2) & (p2 < p3) & (sp > 0.0)
         apex = cohesion * cp / sp
+        compression = p1 < p2
+        a_b = (
+            0.0 if compression else 1.0 + sp,
+            1.0 + sp if compression else -(1.0 - sp),
+            -(1.0 - sp) if compression else 0.0,
+        )
+        r_b = (
+            rc[0] if compression else rx[0],
+            rc[1] if compression else rx[1],
+            rc[2] if compression else rx[2],
+        )
+        # _edge_return with r_b = C b_b
+        f_b = _dot(a_b, t) - k
+        m11, m12 = _dot(a1, r1), _dot(a1, r_b)
+        m21, m22 = _dot(a_b, r1), _dot(a_b, r_b)
+        det = m11 * m22 - m12 * m21
+        xe = (f1 * m22 - m12 * f_b) / det
+        ye = (m11 * f_b - m21 * f1) / det
+        q1 = t[0] - xe * r1[0] - ye * r_b[0]
+        q2 = t[1] - xe * r1[1] - ye * r_b[1]
+        q3 = t[2] - xe * r1[2] - ye * r_b[2]
+        pair_c = 0.5 * (q1 + q2)
+        pair_x = 0.5 * (q2 + q3)
+        apex_c = (sp > 0.0) & (pair_c < q3)
+        apex_x = (sp > 0.0) & (q1 < pair_x)
+        to_apex = both | (apex_c if compression else apex_x)
+        on_edge = not (elastic | plane | to_apex)
+        n1 = p1 if plane else (apex if to_apex else (pair_c if compression else q1))
+        n2 = p2 if plane else (apex if to_apex else (pair_c if compression else pair_x))
+        n3 = p3 if plane else (apex if to_apex else (q3 if compression else pair_x))
+        n1, n2, n3 = (t[0] if elastic else n1), (t[1] if elastic else n2), (t[2] if elastic else n3)
+        edge = float(EDGE_COMPRESSION) if compression else float(EDGE_EXTENSION)
+        code = float(ELASTIC) if elastic else (float(PLANE) if plane else float(APEX))
+        code = edge if on_edge else code
+        # _principal_update's tension cap: left to the scalar path
         cap = (apex if apex < tension_cutoff else tension_cutoff) if sp > 0.0 else tension_cutoff
-        capped = (tension_cutoff > 0.0) & (top > cap)
+        capped = (tension_cutoff > 0.0) & (n1 > cap)
         in_range = (SAFE_RANGE[0] <= size) & (size <= SAFE_RANGE[1]) & (e1 >= e2)
-        fast = (elastic | plane) & (not capped) & in_range
-        d1, d2, d3 = p1 - t1, p2 - t2, p3 - t3
+        fast = (not capped) & in_range
+        # _return_with_eigen: unchanged, hydrostatic, or the trial plus the change along
+        # each eigenvector
+        hydrostatic = (not elastic) & (n1 == n3)
+        d1, d2, d3 = n1 - t[0], n2 - t[1], n3 - t[2]
         dx = d1 if far_first else (d3 if far_last else d2)  # the far eigenvector's
         dy = d2 if far_first else d1  # the larger one's
         dz = d2 if far_last else d3  # the smaller one's
@@ -953,8 +996,9 @@ def _plane_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, coh
             s[5] + dx * x1 * x2 + dy * y1 * y2 + dz * z1 * z2,
         )
         for r in range(6):
-            ret[r * width + i] = s[r] if elastic else new[r]
-        ret[6 * width + i] = (float(ELASTIC) if elastic else float(PLANE)) if fast else -1.0
+            iso = n1 if r < 3 else 0.0
+            ret[r * width + i] = s[r] if elastic else (iso if hydrostatic else new[r])
+        ret[6 * width + i] = code if fast else -1.0
 
 
 @njit(**_JIT)
@@ -965,9 +1009,9 @@ def return_batch(lo, n, trial, e, uw, out, vec, ret, stress, codes, gap, contact
     Particle ``lo + i`` of ``stress`` (N, 3, 3) receives the returned trial ``i``,
     ``codes`` its return code and, if ``contact``, ``gap`` (N) what an apex or cap return
     adds to it (:func:`open_gap`). The work array ``vec`` (9, B) receives the eigenvectors
-    (x, y, z components of the far, larger and smaller one's). Elastic and plane returns
-    are computed for the whole block at once (:func:`_plane_returns`, into the work
-    array ``ret`` (7, B)), the others one by one. Trials outside :data:`SAFE_RANGE` are
+    (x, y, z components of the far, larger and smaller one's). The returns are computed
+    for the whole block at once (:func:`_block_returns`, into the work array ``ret``
+    (7, B)), and those at the tension cap one by one. Trials outside :data:`SAFE_RANGE` are
     decomposed again by the scalar, rescaling :func:`_eigh3`. With ``rate_dependent``
     each particle's sin φ is ``trial[6, i]`` (:func:`rate_friction`) instead of
     ``sin_phi``.
@@ -976,37 +1020,36 @@ def return_batch(lo, n, trial, e, uw, out, vec, ret, stress, codes, gap, contact
     flat_trial, flat_vec = trial.reshape(-1), vec.reshape(-1)
     flat_out, flat_ret = out.reshape(-1), ret.reshape(-1)
     if trial.shape[1] == BATCH_BLOCK:  # a constant width: the SIMD loop
-        _plane_returns(
+        _block_returns(
             flat_trial, flat_vec, flat_out, flat_ret, BATCH_BLOCK, n, lam, G, sin_phi,
             cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent,
         )  # fmt: skip
     else:
-        _plane_returns(
+        _block_returns(
             flat_trial, flat_vec, flat_out, flat_ret, trial.shape[1], n, lam, G, sin_phi,
             cos_phi, cohesion, sin_psi, tension_cutoff, rate_dependent,
         )  # fmt: skip
     for i in range(n):
-        if ret[6, i] >= 0.0:
-            # elastic or plane: the gap is unchanged (open_gap)
-            write_stress(stress, lo + i, (ret[0, i], ret[1, i], ret[2, i], ret[3, i], ret[4, i],
-                                          ret[5, i]))  # fmt: skip
-            codes[lo + i] = np.int8(ret[6, i])
-            continue
-        if rate_dependent:
-            sin_phi = trial[6, i]
-            cos_phi = math.sqrt(1.0 - sin_phi * sin_phi)
         s = (trial[0, i], trial[1, i], trial[2, i], trial[3, i], trial[4, i], trial[5, i])
-        size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
-        if SAFE_RANGE[0] <= size <= SAFE_RANGE[1]:
-            eig = (
-                out[0, i], out[1, i], out[2, i], vec[0, i], vec[1, i], vec[2, i],
-                vec[3, i], vec[4, i], vec[5, i], vec[6, i], vec[7, i], vec[8, i],
-            )  # fmt: skip
+        if ret[6, i] >= 0.0:
+            new = (ret[0, i], ret[1, i], ret[2, i], ret[3, i], ret[4, i], ret[5, i])
+            code = np.int8(ret[6, i])
         else:
-            eig = _eigh3(s)
-        new, code = _return_with_eigen(
-            s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tension_cutoff
-        )
+            sp, cp = sin_phi, cos_phi
+            if rate_dependent:
+                sp = trial[6, i]
+                cp = math.sqrt(1.0 - sp * sp)
+            size = max(abs(s[0]), abs(s[1]), abs(s[2]), abs(s[3]), abs(s[4]), abs(s[5]))
+            if SAFE_RANGE[0] <= size <= SAFE_RANGE[1]:
+                eig = (
+                    out[0, i], out[1, i], out[2, i], vec[0, i], vec[1, i], vec[2, i],
+                    vec[3, i], vec[4, i], vec[5, i], vec[6, i], vec[7, i], vec[8, i],
+                )  # fmt: skip
+            else:
+                eig = _eigh3(s)
+            new, code = _return_with_eigen(
+                s, eig, lam, G, sp, cp, cohesion, sin_psi, tension_cutoff
+            )
         write_stress(stress, lo + i, new)
         codes[lo + i] = code
         if contact:
