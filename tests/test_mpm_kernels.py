@@ -107,7 +107,7 @@ def _g2p(
     codes = np.full(len(x), -9, np.int8)
     # two chunks in blocks of the batched 3-D stress update
     starts = kernels.chunk_starts(len(x), 2)
-    work = tuple(np.full(w.shape, np.nan) for w in mohr_coulomb.batch_work(2, block))
+    work = tuple(np.full(w.shape, np.nan) for w in kernels.g2p_work(2, block))
     G2P[d](
         x, v, C, vol, J, gap, stress, codes, vel, mass, ORIGIN[d], INV_H, dt, material, starts,
         work,

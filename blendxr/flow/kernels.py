@@ -76,6 +76,7 @@ from numba import njit, prange
 
 from .mohr_coulomb import (
     BATCH_BLOCK,
+    batch_work,
     eigh3_batch,
     rate_friction,
     read_stress,
@@ -94,6 +95,7 @@ __all__ = [
     "fold_mirror_3d",
     "g2p_2d",
     "g2p_3d",
+    "g2p_work",
     "grid_update_2d",
     "grid_update_3d",
     "p2g_2d",
@@ -119,6 +121,19 @@ _JIT_SERIAL = {"cache": True, "fastmath": False, "error_model": "numpy"}
 #: Particles per block of the 3-D G2P's batched stress update
 #: (:data:`blendxr.flow.mohr_coulomb.BATCH_BLOCK`).
 G2P_BLOCK = BATCH_BLOCK
+#: Particles per sub-block of the 3-D G2P's gather: their 27 node velocities (81 rows
+#: of float64) take 20 KiB, within a 32 KiB L1 data cache; a constant, so that LLVM
+#: vectorises the sums over the rows (see :func:`_contract_nodes`).
+GATHER_WIDTH = 32
+_GATHER_ROWS = (81, 12, 12)  # node velocities; weights and offsets; sums
+
+
+def g2p_work(threads, block=G2P_BLOCK):
+    """Work arrays of :func:`g2p_3d` for ``threads`` chunks: the batched stress update's
+    (``blendxr.flow.mohr_coulomb.batch_work(threads, block)``), then the gather's flat
+    node velocities, weights and sums, (threads, rows * GATHER_WIDTH) each."""
+    gather = tuple(np.zeros((threads, rows * GATHER_WIDTH)) for rows in _GATHER_ROWS)
+    return batch_work(threads, block) + gather
 
 
 # ---------------------------------------------------------------------------------------
@@ -869,6 +884,128 @@ def _g2p_range_2d(
 
 
 @njit(**_JIT_SERIAL)
+def _packing(x, p, mass, origin, inv_h):
+    """Σ w m_i of particle p's stencil: the node mass around it."""
+    nx, ny, nz = mass.shape
+    bx, _, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+    by, _, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+    bz, _, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
+    wx = (wx0, wx1, wx2)
+    wy = (wy0, wy1, wy2)
+    packing = 0.0
+    for a in range(3):
+        i = bx + a
+        for b in range(3):
+            j = by + b
+            packing += (wx[a] * wy[b]) * (
+                wz0 * mass[i, j, bz] + wz1 * mass[i, j, bz + 1] + wz2 * mass[i, j, bz + 2]
+            )
+    return packing
+
+
+@njit(**_JIT_SERIAL)
+def _gather_nodes(lo, m, x, flat, origin, inv_h, shape, nodes, weights):
+    """Stencil weights and the 27 node velocities of particles lo .. lo + m - 1, one
+    particle a column of the flat work arrays (row r at ``r * GATHER_WIDTH``).
+
+    ``weights`` rows: wx0..2, wy0..2, wz0..2, rx, ry, rz; ``nodes`` row ``9 (3 a + b) +
+    c``: number c of the line of three nodes along z at offsets (a, b), that is node c // 3,
+    component c % 3.
+    """
+    nx, ny, nz = shape
+    line_x = np.uint64(ny * nz * 3)
+    line_y = np.uint64(nz * 3)
+    for k in range(m):
+        p = lo + k
+        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
+        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
+        bz, rz, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
+        w = (wx0, wx1, wx2, wy0, wy1, wy2, wz0, wz1, wz2, rx, ry, rz)
+        for r in range(12):
+            weights[r * GATHER_WIDTH + k] = w[r]
+        for a in range(3):
+            for b in range(3):
+                q = np.uint64(bx + a) * line_x + np.uint64(by + b) * line_y + np.uint64(3 * bz)
+                row = 9 * (3 * a + b)
+                for c in range(9):
+                    nodes[(row + c) * GATHER_WIDTH + k] = flat[q + np.uint64(c)]
+
+
+@njit(inline="always", **_JIT_SERIAL)
+def _line(nodes, row, k, wab, wz):
+    """One line of three nodes along z in column k (rows ``row`` .. ``row + 8``): its
+    share of v, ``wab (wz0 u0 + wz1 u1 + wz2 u2)``, and of B's z column, ``wab (wz1 u1 +
+    2 wz2 u2)``."""
+    W = GATHER_WIDTH
+    wz0, wz1, wz2 = wz
+    wz2b = 2.0 * wz2
+    u00 = nodes[row * W + k]
+    u01 = nodes[(row + 1) * W + k]
+    u02 = nodes[(row + 2) * W + k]
+    u10 = nodes[(row + 3) * W + k]
+    u11 = nodes[(row + 4) * W + k]
+    u12 = nodes[(row + 5) * W + k]
+    u20 = nodes[(row + 6) * W + k]
+    u21 = nodes[(row + 7) * W + k]
+    u22 = nodes[(row + 8) * W + k]
+    return (
+        wab * (wz0 * u00 + wz1 * u10 + wz2 * u20),
+        wab * (wz0 * u01 + wz1 * u11 + wz2 * u21),
+        wab * (wz0 * u02 + wz1 * u12 + wz2 * u22),
+        wab * (wz1 * u10 + wz2b * u20),
+        wab * (wz1 * u11 + wz2b * u21),
+        wab * (wz1 * u12 + wz2b * u22),
+    )
+
+
+@njit(inline="always", **_JIT_SERIAL)
+def _accumulate(acc, a, b, line):
+    """Add the line at stencil offsets (a, b) to (v0, v1, v2, b00, b01, ..., b22)."""
+    v0, v1, v2, b00, b01, b02, b10, b11, b12, b20, b21, b22 = acc
+    l0, l1, l2, m0, m1, m2 = line
+    v0 += l0
+    v1 += l1
+    v2 += l2
+    b02 += m0
+    b12 += m1
+    b22 += m2
+    if a > 0:
+        b00 += a * l0
+        b10 += a * l1
+        b20 += a * l2
+    if b > 0:
+        b01 += b * l0
+        b11 += b * l1
+        b21 += b * l2
+    return v0, v1, v2, b00, b01, b02, b10, b11, b12, b20, b21, b22
+
+
+@njit(**_JIT_SERIAL)
+def _contract_nodes(nodes, weights, sums, m):
+    """Sums of :func:`_gather_nodes`' columns: v and the nine sums of B (rows 0..2 and
+    3..11 of ``sums``: b00, b01, ..., b22). A SIMD loop over the particles, each doing
+    the scalar gather's operations (see above) in its order, so the same bits; the nine
+    lines are written out, so that no loop is left inside the one LLVM vectorises."""
+    W = GATHER_WIDTH
+    for k in range(m):
+        wx0, wx1, wx2 = weights[k], weights[W + k], weights[2 * W + k]
+        wy0, wy1, wy2 = weights[3 * W + k], weights[4 * W + k], weights[5 * W + k]
+        wz = (weights[6 * W + k], weights[7 * W + k], weights[8 * W + k])
+        acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        acc = _accumulate(acc, 0, 0, _line(nodes, 0, k, wx0 * wy0, wz))
+        acc = _accumulate(acc, 0, 1, _line(nodes, 9, k, wx0 * wy1, wz))
+        acc = _accumulate(acc, 0, 2, _line(nodes, 18, k, wx0 * wy2, wz))
+        acc = _accumulate(acc, 1, 0, _line(nodes, 27, k, wx1 * wy0, wz))
+        acc = _accumulate(acc, 1, 1, _line(nodes, 36, k, wx1 * wy1, wz))
+        acc = _accumulate(acc, 1, 2, _line(nodes, 45, k, wx1 * wy2, wz))
+        acc = _accumulate(acc, 2, 0, _line(nodes, 54, k, wx2 * wy0, wz))
+        acc = _accumulate(acc, 2, 1, _line(nodes, 63, k, wx2 * wy1, wz))
+        acc = _accumulate(acc, 2, 2, _line(nodes, 72, k, wx2 * wy2, wz))
+        for r in range(12):
+            sums[r * W + k] = acc[r]
+
+
+@njit(**_JIT_SERIAL)
 def _g2p_block_3d(
     lo,
     hi,
@@ -887,133 +1024,90 @@ def _g2p_block_3d(
     trial,
     before,
     grad,
+    gather,
     material,
 ):
     """G2P of particles lo:hi: their stresses into ``before[:, p - lo]`` and their
     velocity gradients into ``grad[:, p - lo]``, for :func:`trial_batch` (and with a
-    rate-dependent friction each particle's sin φ into ``trial[6, p - lo]``)."""
+    rate-dependent friction each particle's sin φ into ``trial[6, p - lo]``).
+
+    The gather runs in sub-blocks of :data:`GATHER_WIDTH` particles: their node
+    velocities copied into columns (:func:`_gather_nodes`), then summed in a SIMD loop
+    (:func:`_contract_nodes`); ``gather`` holds the three flat work arrays.
+    """
+    nodes, weights, sums = gather
+    W = GATHER_WIDTH
     contact = material[7] > 0.0
-    nx, ny, nz = vel.shape[0], vel.shape[1], vel.shape[2]
+    shape = (vel.shape[0], vel.shape[1], vel.shape[2])
     scale = 4.0 * inv_h  # D^-1 times h: B is in grid units
     # node velocities as one flat array with unsigned offsets: a line of three nodes
     # along z is nine adjacent numbers, and no index needs a negative-index check
     flat = vel.reshape(-1)
-    line_x = np.uint64(ny * nz * 3)
-    line_y = np.uint64(nz * 3)
-    for p in range(lo, hi):
-        bx, rx, wx0, wx1, wx2 = _stencil((x[p, 0] - origin[0]) * inv_h, nx)
-        by, ry, wy0, wy1, wy2 = _stencil((x[p, 1] - origin[1]) * inv_h, ny)
-        bz, rz, wz0, wz1, wz2 = _stencil((x[p, 2] - origin[2]) * inv_h, nz)
-        wx = (wx0, wx1, wx2)
-        wy = (wy0, wy1, wy2)
-        wz2b = 2.0 * wz2
-        v0 = 0.0
-        v1 = 0.0
-        v2 = 0.0
-        b00 = 0.0
-        b01 = 0.0
-        b02 = 0.0
-        b10 = 0.0
-        b11 = 0.0
-        b12 = 0.0
-        b20 = 0.0
-        b21 = 0.0
-        b22 = 0.0
-        for a in range(3):
-            i = bx + a
-            for b in range(3):
-                j = by + b
-                wab = wx[a] * wy[b]
-                q = np.uint64(i) * line_x + np.uint64(j) * line_y + np.uint64(3 * bz)
-                u00 = flat[q]
-                u01 = flat[q + np.uint64(1)]
-                u02 = flat[q + np.uint64(2)]
-                u10 = flat[q + np.uint64(3)]
-                u11 = flat[q + np.uint64(4)]
-                u12 = flat[q + np.uint64(5)]
-                u20 = flat[q + np.uint64(6)]
-                u21 = flat[q + np.uint64(7)]
-                u22 = flat[q + np.uint64(8)]
-                l0 = wab * (wz0 * u00 + wz1 * u10 + wz2 * u20)
-                l1 = wab * (wz0 * u01 + wz1 * u11 + wz2 * u21)
-                l2 = wab * (wz0 * u02 + wz1 * u12 + wz2 * u22)
-                v0 += l0
-                v1 += l1
-                v2 += l2
-                b02 += wab * (wz1 * u10 + wz2b * u20)
-                b12 += wab * (wz1 * u11 + wz2b * u21)
-                b22 += wab * (wz1 * u12 + wz2b * u22)
-                if a > 0:
-                    b00 += a * l0
-                    b10 += a * l1
-                    b20 += a * l2
-                if b > 0:
-                    b01 += b * l0
-                    b11 += b * l1
-                    b21 += b * l2
-        if contact and gap[p] > 0.0:
-            # a closed gap stays closed whatever the packing: no mass gather
-            packing = 0.0
-            for a in range(3):
-                i = bx + a
-                for b in range(3):
-                    j = by + b
-                    packing += (wx[a] * wy[b]) * (
-                        wz0 * mass[i, j, bz] + wz1 * mass[i, j, bz + 1] + wz2 * mass[i, j, bz + 2]
-                    )
-            gap[p] = _bounded_gap(gap[p], packing * material[7])
-        c00 = scale * (b00 - v0 * rx)
-        c01 = scale * (b01 - v0 * ry)
-        c02 = scale * (b02 - v0 * rz)
-        c10 = scale * (b10 - v1 * rx)
-        c11 = scale * (b11 - v1 * ry)
-        c12 = scale * (b12 - v1 * rz)
-        c20 = scale * (b20 - v2 * rx)
-        c21 = scale * (b21 - v2 * ry)
-        c22 = scale * (b22 - v2 * rz)
-        C[p, 0, 0] = c00
-        C[p, 0, 1] = c01
-        C[p, 0, 2] = c02
-        C[p, 1, 0] = c10
-        C[p, 1, 1] = c11
-        C[p, 1, 2] = c12
-        C[p, 2, 0] = c20
-        C[p, 2, 1] = c21
-        C[p, 2, 2] = c22
-        # det(I + dt L) by cofactors along the first row
-        a00 = 1.0 + dt * c00
-        a11 = 1.0 + dt * c11
-        a22 = 1.0 + dt * c22
-        a01 = dt * c01
-        a02 = dt * c02
-        a10 = dt * c10
-        a12 = dt * c12
-        a20 = dt * c20
-        a21 = dt * c21
-        growth = (
-            a00 * (a11 * a22 - a12 * a21)
-            - a01 * (a10 * a22 - a12 * a20)
-            + a02 * (a10 * a21 - a11 * a20)
-        )
-        J[p] *= growth
-        vol[p] *= growth
-        x[p, 0] += dt * v0
-        x[p, 1] += dt * v1
-        x[p, 2] += dt * v2
-        v[p, 0] = v0
-        v[p, 1] = v1
-        v[p, 2] = v2
-        l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
-        old = read_stress(stress, p)
-        k = p - lo
-        for r in range(6):
-            before[r, k] = old[r]
-        for r in range(9):
-            grad[r, k] = l[r]
-        if material[8] > 0.0:
-            trial[6, k] = rate_friction(
-                l, old, material[2], material[3], material[8], material[9], material[10]
-            )[0]
+    for sub in range(lo, hi, W):
+        m = min(W, hi - sub)
+        _gather_nodes(sub, m, x, flat, origin, inv_h, shape, nodes, weights)
+        _contract_nodes(nodes, weights, sums, m)
+        for kk in range(m):
+            p = sub + kk
+            v0, v1, v2 = sums[kk], sums[W + kk], sums[2 * W + kk]
+            b00, b01, b02 = sums[3 * W + kk], sums[4 * W + kk], sums[5 * W + kk]
+            b10, b11, b12 = sums[6 * W + kk], sums[7 * W + kk], sums[8 * W + kk]
+            b20, b21, b22 = sums[9 * W + kk], sums[10 * W + kk], sums[11 * W + kk]
+            rx, ry, rz = weights[9 * W + kk], weights[10 * W + kk], weights[11 * W + kk]
+            if contact and gap[p] > 0.0:
+                gap[p] = _bounded_gap(gap[p], _packing(x, p, mass, origin, inv_h) * material[7])
+            c00 = scale * (b00 - v0 * rx)
+            c01 = scale * (b01 - v0 * ry)
+            c02 = scale * (b02 - v0 * rz)
+            c10 = scale * (b10 - v1 * rx)
+            c11 = scale * (b11 - v1 * ry)
+            c12 = scale * (b12 - v1 * rz)
+            c20 = scale * (b20 - v2 * rx)
+            c21 = scale * (b21 - v2 * ry)
+            c22 = scale * (b22 - v2 * rz)
+            C[p, 0, 0] = c00
+            C[p, 0, 1] = c01
+            C[p, 0, 2] = c02
+            C[p, 1, 0] = c10
+            C[p, 1, 1] = c11
+            C[p, 1, 2] = c12
+            C[p, 2, 0] = c20
+            C[p, 2, 1] = c21
+            C[p, 2, 2] = c22
+            # det(I + dt L) by cofactors along the first row
+            a00 = 1.0 + dt * c00
+            a11 = 1.0 + dt * c11
+            a22 = 1.0 + dt * c22
+            a01 = dt * c01
+            a02 = dt * c02
+            a10 = dt * c10
+            a12 = dt * c12
+            a20 = dt * c20
+            a21 = dt * c21
+            growth = (
+                a00 * (a11 * a22 - a12 * a21)
+                - a01 * (a10 * a22 - a12 * a20)
+                + a02 * (a10 * a21 - a11 * a20)
+            )
+            J[p] *= growth
+            vol[p] *= growth
+            x[p, 0] += dt * v0
+            x[p, 1] += dt * v1
+            x[p, 2] += dt * v2
+            v[p, 0] = v0
+            v[p, 1] = v1
+            v[p, 2] = v2
+            l = (c00, c01, c02, c10, c11, c12, c20, c21, c22)
+            old = read_stress(stress, p)
+            k = p - lo
+            for r in range(6):
+                before[r, k] = old[r]
+            for r in range(9):
+                grad[r, k] = l[r]
+            if material[8] > 0.0:
+                trial[6, k] = rate_friction(
+                    l, old, material[2], material[3], material[8], material[9], material[10]
+                )[0]
 
 
 @njit(**_JIT)
@@ -1115,8 +1209,8 @@ def g2p_3d(
         I0, inertial_scale)`` as for :func:`g2p_2d`.
     starts : ndarray of int64, shape (T + 1,)
         Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
-    work : tuple of 7 ndarray of float64, shapes (T, rows, B)
-        Per-task work arrays, ``blendxr.flow.mohr_coulomb.batch_work(T, B)``: each task
+    work : tuple of 10 ndarray of float64
+        Per-task work arrays, :func:`g2p_work` (T, B): each task
         runs its chunk in blocks of B particles, gathering the velocities and gradients
         of a block, then forming its elastic trial stresses and decomposing them all at
         once with the SIMD loops of :func:`blendxr.flow.mohr_coulomb.trial_batch` and
@@ -1125,7 +1219,7 @@ def g2p_3d(
     K, G = material[0], material[1]
     lam = K - 2.0 * G / 3.0
     contact = material[7] > 0.0
-    trial, alpha, e, uw, out, grad, ret = work
+    trial, alpha, e, uw, out, grad, ret, nodes, weights, sums = work
     block = trial.shape[2]
     for t in prange(starts.shape[0] - 1):
         for lo in range(starts[t], starts[t + 1], block):
@@ -1133,7 +1227,7 @@ def g2p_3d(
             n = hi - lo
             _g2p_block_3d(
                 lo, hi, x, v, C, vol, J, gap, stress, vel, mass, origin, inv_h, dt, trial[t],
-                uw[t], grad[t], material,
+                uw[t], grad[t], (nodes[t], weights[t], sums[t]), material,
             )  # fmt: skip
             # the stresses before the step wait in uw, which eigh3_batch fills next
             trial_batch(uw[t], grad[t], trial[t], gap, lo, n, dt, lam, G, contact)

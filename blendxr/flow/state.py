@@ -95,7 +95,7 @@ class BackgroundGrid:
         self.mass = np.zeros(self.shape)
         self.momentum = np.zeros((*self.shape, self.ndim))
         self.velocity = np.zeros((*self.shape, self.ndim))
-        self.g2p_work = mc.batch_work(threads, mpm.G2P_BLOCK if self.ndim == 3 else 1)
+        self.g2p_work = mpm.g2p_work(threads) if self.ndim == 3 else mc.batch_work(threads, 1)
 
     @property
     def nbytes(self) -> int:
