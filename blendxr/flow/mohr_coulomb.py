@@ -680,6 +680,13 @@ def _return_with_eigen(s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tens
     d0 = _slot(0, i1, i2, n1 - t1, n2 - t2, n3 - t3)
     d1 = _slot(1, i1, i2, n1 - t1, n2 - t2, n3 - t3)
     d2 = _slot(2, i1, i2, n1 - t1, n2 - t2, n3 - t3)
+    return _changed_along(s, d0, d1, d2, eig[3:]), code
+
+
+@njit(inline="always", **_JIT)
+def _changed_along(s, d0, d1, d2, vectors):
+    """σ + d0 x xᵀ + d1 y yᵀ + d2 z zᵀ for the eigenvectors (x, y, z) given as 9 numbers."""
+    x0, x1, x2, y0, y1, y2, z0, z1, z2 = vectors
     return (
         s[0] + d0 * x0 * x0 + d1 * y0 * y0 + d2 * z0 * z0,
         s[1] + d0 * x1 * x1 + d1 * y1 * y1 + d2 * z1 * z1,
@@ -687,7 +694,7 @@ def _return_with_eigen(s, eig, lam, G, sin_phi, cos_phi, cohesion, sin_psi, tens
         s[3] + d0 * x0 * x1 + d1 * y0 * y1 + d2 * z0 * z1,
         s[4] + d0 * x0 * x2 + d1 * y0 * y2 + d2 * z0 * z2,
         s[5] + d0 * x1 * x2 + d1 * y1 * y2 + d2 * z1 * z2,
-    ), code
+    )
 
 
 @njit(**_JIT)
@@ -755,26 +762,28 @@ def rate_friction(l, s, sin_phi, cos_phi, rise, i0, inertial_scale):
 # rescaling: return_batch sends matrices outside SAFE_RANGE to _eigh3.
 # --------------------------------------------------------------------------------------
 
-#: Particles per block of the batched stress update (the 3-D G2P's): the block's work
-#: arrays then fit in a 32 KiB L1 data cache. Blocks of this width take the SIMD path of
-#: :func:`return_batch`'s elastic and plane returns; other widths the same steps unvectorised.
+#: Particles per block of the batched stress update (the 3-D G2P's; the fastest of 64,
+#: 128 and 256, docs/flow.md). Blocks of this width take the SIMD loop of
+#: :func:`return_batch`'s returns; other widths the same steps unvectorised.
 BATCH_BLOCK = 128
 
-#: Rows of each work array of :func:`eigh3_batch` (see :func:`batch_work`); the last,
-#: the velocity gradients of the block, is read by :func:`trial_batch`.
+#: Rows of each work array of :func:`batch_work`: trials, far eigenvalue, its vector,
+#: plane pair, eigenvalues and rotation, gradients (then eigenvectors), returns.
 BATCH_ROWS = (7, 1, 3, 6, 5, 9, 7)  # the trials' 7th row: each particle's sin(phi)
 
 
 def batch_work(threads, block):
-    """Work arrays of :func:`eigh3_batch` for ``threads`` chunks of ``block`` particles.
+    """Work arrays of the batched stress update (:func:`trial_batch`, :func:`eigh3_batch`,
+    :func:`return_batch`) for ``threads`` chunks of ``block`` particles.
 
     Returns a tuple of seven float64 arrays of shape (threads, rows, block): the trial
     stresses (6 rows: xx, yy, zz, xy, xz, yz, then a 7th for the particle's sin φ under
     a rate-dependent friction, :func:`rate_friction`), the far eigenvalue, its eigenvector, the
     orthonormal pair spanning the plane orthogonal to it, the eigenvalues with the
     2×2 rotation (far, larger, smaller, c, s), the velocity gradients (9 rows, row by
-    row) from which :func:`trial_batch` forms the trials, and the stresses of the
-    elastic and plane returns (6 rows, then their codes) of :func:`return_batch`.
+    row) from which :func:`trial_batch` forms the trials (then the eigenvectors that
+    :func:`return_batch` assembles there), and the returned stresses (6 rows, then their
+    codes) of :func:`return_batch`.
     """
     return tuple(np.zeros((threads, rows, block)) for rows in BATCH_ROWS)
 
@@ -909,8 +918,6 @@ def _block_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, coh
     tell them apart and gives up).
     """
     r1 = _elastic_direction((1.0 + sin_psi, 0.0, -(1.0 - sin_psi)), lam, G)
-    rc = _elastic_direction((0.0, 1.0 + sin_psi, -(1.0 - sin_psi)), lam, G)  # edge σ1 = σ2
-    rx = _elastic_direction((1.0 + sin_psi, -(1.0 - sin_psi), 0.0), lam, G)  # edge σ2 = σ3
     for i in range(n):
         sp = trial[6 * width + i] if rate_dependent else sin_phi
         cp = math.sqrt(1.0 - sp * sp) if rate_dependent else cos_phi
@@ -947,21 +954,12 @@ def _block_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, coh
             1.0 + sp if compression else -(1.0 - sp),
             -(1.0 - sp) if compression else 0.0,
         )
-        r_b = (
-            rc[0] if compression else rx[0],
-            rc[1] if compression else rx[1],
-            rc[2] if compression else rx[2],
+        b_b = (
+            0.0 if compression else 1.0 + sin_psi,
+            1.0 + sin_psi if compression else -(1.0 - sin_psi),
+            -(1.0 - sin_psi) if compression else 0.0,
         )
-        # _edge_return with r_b = C b_b
-        f_b = _dot(a_b, t) - k
-        m11, m12 = _dot(a1, r1), _dot(a1, r_b)
-        m21, m22 = _dot(a_b, r1), _dot(a_b, r_b)
-        det = m11 * m22 - m12 * m21
-        xe = (f1 * m22 - m12 * f_b) / det
-        ye = (m11 * f_b - m21 * f1) / det
-        q1 = t[0] - xe * r1[0] - ye * r_b[0]
-        q2 = t[1] - xe * r1[1] - ye * r_b[1]
-        q3 = t[2] - xe * r1[2] - ye * r_b[2]
+        q1, q2, q3 = _edge_return(t, a1, r1, f1, a_b, b_b, k, lam, G)
         pair_c = 0.5 * (q1 + q2)
         pair_x = 0.5 * (q2 + q3)
         apex_c = (sp > 0.0) & (pair_c < q3)
@@ -987,14 +985,7 @@ def _block_returns(trial, vec, out, ret, width, n, lam, G, sin_phi, cos_phi, coh
         dx = d1 if far_first else (d3 if far_last else d2)  # the far eigenvector's
         dy = d2 if far_first else d1  # the larger one's
         dz = d2 if far_last else d3  # the smaller one's
-        new = (
-            s[0] + dx * x0 * x0 + dy * y0 * y0 + dz * z0 * z0,
-            s[1] + dx * x1 * x1 + dy * y1 * y1 + dz * z1 * z1,
-            s[2] + dx * x2 * x2 + dy * y2 * y2 + dz * z2 * z2,
-            s[3] + dx * x0 * x1 + dy * y0 * y1 + dz * z0 * z1,
-            s[4] + dx * x0 * x2 + dy * y0 * y2 + dz * z0 * z2,
-            s[5] + dx * x1 * x2 + dy * y1 * y2 + dz * z1 * z2,
-        )
+        new = _changed_along(s, dx, dy, dz, (x0, x1, x2, y0, y1, y2, z0, z1, z2))
         for r in range(6):
             iso = n1 if r < 3 else 0.0
             ret[r * width + i] = s[r] if elastic else (iso if hydrostatic else new[r])
