@@ -453,6 +453,73 @@ def random_mixture_intensity(d, cell, *, ndim=3, packing=0.6):
     return 1.0 / n
 
 
+class ArrayRecorder:
+    """The mixing curves' metrics on plain arrays of one fixed grid, for a run's records.
+
+    The same arithmetic as :func:`rsd`, :func:`sample_means` and
+    :func:`intensity_of_samples` (the same NumPy reductions in the same order, so the
+    same numbers), without labelling each intermediate field: a run records these every
+    few steps, where the labelled operations took several times the arithmetic.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The grid's cells per axis (2-D or 3-D).
+    factors : tuple of int, optional
+        Grid cells per sampling cell along each axis (see :func:`sample_means`); None: no
+        sampling cells.
+    min_fill : float
+        Least material fraction of a qualified sampling cell.
+    """
+
+    def __init__(self, shape, factors=None, min_fill=0.95):
+        self.ndim = len(shape)
+        self.min_fill = _check_min_fill(min_fill)
+        self.factors = None if factors is None else tuple(int(k) for k in factors)
+        if self.factors is not None:
+            if len(self.factors) != self.ndim or min(self.factors) < 1:
+                raise ValueError(f"factors {factors!r} do not fit a grid of shape {shape}")
+            # coarsen(boundary="trim"): whole sampling cells from the first grid cell
+            trim, blocks = [], []
+            for n, k in zip(shape, self.factors, strict=True):
+                trim.append(slice(0, (n // k) * k))
+                blocks += [n // k, k]
+            self._trim = tuple(trim)
+            self._blocks = tuple(blocks)
+            self._axes = tuple(range(1, 2 * self.ndim, 2))
+
+    @staticmethod
+    def weights(c, fill):
+        """Cell weights: ``fill`` (NaN as 0) where c holds material, 0 elsewhere."""
+        return np.where(np.isnan(c), 0.0, np.where(np.isnan(fill), 0.0, fill))
+
+    def rsd(self, c, w):
+        """:func:`rsd` of ``c`` with cell weights ``w`` (from :meth:`weights`)."""
+        mean, var = _moments_core(c, w, self.ndim)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return float(np.sqrt(var) / (mean if mean != 0 else np.nan))
+
+    def _block_sum(self, a):
+        return a[self._trim].reshape(self._blocks).sum(axis=self._axes)
+
+    def sample_means(self, c, w):
+        """:func:`sample_means` of ``c`` with cell weights ``w``: NaN where a sampling cell
+        does not qualify."""
+        num = self._block_sum(w * np.where(np.isnan(c), 0.0, c))
+        den = self._block_sum(w)
+        frac = den / float(np.prod(self.factors))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = num / np.where(den > 0, den, np.nan)
+        return np.where(frac >= self.min_fill - 1e-12, mean, np.nan)
+
+    def intensity(self, samples):
+        """:func:`intensity_of_samples` of the sample concentrations ``samples``."""
+        mean, var = _moments_core(samples, (~np.isnan(samples)).astype(np.float64), self.ndim)
+        sigma0 = mean * (1.0 - mean)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return float(var / (sigma0 if sigma0 > 0 else np.nan))
+
+
 def lacey_index(
     c,
     fill=None,

@@ -165,6 +165,31 @@ def test_sample_means_trims_and_checks_cell():
     assert metrics.sample_means(c32, cell=3 * H).sizes == {"x": 1, "y": 2, "z": 1}
 
 
+@pytest.mark.parametrize("shape, k", [((11, 9, 7), 2), ((10, 13), 3), ((6, 6, 6), 1)])
+def test_array_recorder_equals_the_labelled_metrics(shape, k):
+    """The records' plain-array metrics give the labelled functions' numbers exactly
+    (NaN cells, partial fills, sampling cells trimmed at the far ends)."""
+    rng = np.random.default_rng(len(shape) * 10 + k)
+    values = rng.random(shape)
+    values[rng.random(shape) < 0.2] = np.nan
+    fill = np.clip(rng.random(shape) * 1.3, 0.0, 1.0)
+    fill[rng.random(shape) < 0.05] = np.nan
+    c, f = field(values), field(fill)
+    recorder = metrics.ArrayRecorder(shape, (k,) * len(shape), min_fill=0.5)
+    w = recorder.weights(values, fill)
+    assert recorder.rsd(values, w) == float(metrics.rsd(c, fill=f))
+    samples = metrics.sample_means(c, fill=f, cell=k * H, min_fill=0.5)
+    mine = recorder.sample_means(values, w)
+    np.testing.assert_array_equal(mine, samples.values)
+    assert np.count_nonzero(~np.isnan(mine)) >= 2
+    assert recorder.intensity(mine) == float(metrics.intensity_of_samples(samples))
+
+
+def test_array_recorder_rejects_factors_that_do_not_fit():
+    with pytest.raises(ValueError, match="do not fit"):
+        metrics.ArrayRecorder((4, 4, 4), (2, 2))
+
+
 # --------------------------------------------------------------------------- random floor, Lacey
 
 

@@ -480,6 +480,7 @@ class _Run:
         self.interval: tuple[float, float, int] | None = None
         self.stops = StopRules()  # max_steps and wall_time, set by the caller
         self.sampling_cell = self._sampling_cell()
+        self.recorder = self._recorder()
         self.mean_c = None  # the mean of c, from the first record (it is conserved)
 
     # --- random-mixture floors and the stop rule ----------------------------
@@ -552,31 +553,33 @@ class _Run:
         n = max(1, round(cell / h[0]))
         return n * h[0]
 
+    def _recorder(self) -> metrics.ArrayRecorder:
+        """The records' metrics on this grid's arrays, with its sampling cells (none when
+        a sampling cell does not fit the grid)."""
+        factors = None
+        if self.sampling_cell is not None:
+            h = self.grid.spacing[0]
+            k = max(1, round(self.sampling_cell / h))
+            if all(k <= n for n in self.grid.shape):
+                factors = (k,) * self.ndim
+        return metrics.ArrayRecorder(self.grid.shape, factors)
+
     def record(self) -> None:
         fill = self.current_fill()  # blended once: the metrics below all need it
         c, weight = self.concentration_and_weight(fill)
-        da = xr.DataArray(
-            c, dims=self.grid.dims, coords=dict(zip(self.grid.dims, self.grid.coords, strict=True))
-        )
-        w = xr.DataArray(weight, dims=da.dims, coords=da.coords)
+        metric = self.recorder
         rec = self.records
         rec["time"].append(self.t)
-        rec["rsd"].append(float(metrics.rsd(da, fill=w)))
+        rec["rsd"].append(metric.rsd(c, metric.weights(c, weight)))
         value, count = math.nan, 0
-        if self.sampling_cell is not None:
+        if metric.factors is not None:
             # Sampling cells qualify by the flow's fill (the paper's EVF), not by the
             # carried material, which the scheme smears at the free surface over many
             # revolutions until few cells hold 95 % of it.
-            bed = np.where(np.isfinite(c), fill, 0.0)
-            bed = xr.DataArray(bed, dims=da.dims, coords=da.coords)
-            try:
-                samples = metrics.sample_means(da, fill=bed, cell=self.sampling_cell)
-            except ValueError:  # a sampling cell larger than the grid
-                samples = None
-            if samples is not None:
-                count = int(samples.notnull().sum())
-                if count >= self.settings.min_intensity_cells:
-                    value = float(metrics.intensity_of_samples(samples))
+            samples = metric.sample_means(c, metric.weights(c, fill))
+            count = int(np.count_nonzero(~np.isnan(samples)))
+            if count >= self.settings.min_intensity_cells:
+                value = metric.intensity(samples)
         rec["intensity"].append(value)
         rec["intensity_cells"].append(float(count))
         if self.mean_c is None:
