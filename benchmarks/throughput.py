@@ -408,9 +408,9 @@ def main() -> None:
     echo(f"machine: {machine_line(info)}")
     echo(f"warm-up (compilation or cache load) {compile_s:.1f} s")
 
-    # The reference's rate moves with the host's state (it ran 340 and 550-620 M/s within
-    # an hour): it is taken before and after the cases and the fastest kept, so that the
-    # ratios are not flattered by a slow moment of the reference.
+    # The reference's rate moves with the host's state (benchmarks/README.md): it is taken
+    # before and after the cases and the fastest kept, so that the ratios are not
+    # flattered by a slow moment of the reference.
     references = [stencil19_rate(2, per_cell=True)]
     cases = []
     for case, flow in flows().items():

@@ -41,6 +41,10 @@ SPATIAL_DIMS = ("x", "y", "z")
 # A sampling cell may be this far (in grid cells) from a whole number of grid cells: grids
 # written as float32 carry spacings with relative errors of about 1e-6.
 _WHOLE_CELL_TOL = 1e-3
+#: Least material fraction of a qualified sampling cell (the paper's Appendix A), and the
+#: allowance that keeps a cell whose fraction is that value up to round-off.
+MIN_SAMPLE_FILL = 0.95
+_MIN_FILL_ALLOWANCE = 1e-12
 # Relative tolerance on the uniformity of a grid's spacing.
 _UNIFORM_RTOL = 1e-4
 # A cell belongs to the bed when more than this fraction of it holds material.
@@ -274,7 +278,7 @@ def _coarsen_factors(c, spatial, cell):
     return factors
 
 
-def sample_means(c, fill=None, cell=None, min_fill=0.95):
+def sample_means(c, fill=None, cell=None, min_fill=MIN_SAMPLE_FILL):
     """Concentrations of non-overlapping sampling cells of edge ``cell`` (scale of scrutiny).
 
     The grid is cut into cubes (squares in 2-D) of ``cell / h`` grid cells per side, starting
@@ -323,8 +327,7 @@ def sample_means(c, fill=None, cell=None, min_fill=0.95):
         frac = w.coarsen(factors, boundary="trim").mean()
         mean = num / den.where(den > 0)
         scale = f"{float(cell):g} m"
-    # The small allowance keeps a cell whose fraction is min_fill up to round-off.
-    out = mean.where(frac >= min_fill - 1e-12)
+    out = mean.where(frac >= min_fill - _MIN_FILL_ALLOWANCE)
     return _finish(
         out,
         "c_sample",
@@ -334,7 +337,7 @@ def sample_means(c, fill=None, cell=None, min_fill=0.95):
     )
 
 
-def segregation_intensity(c, fill=None, cell=None, min_fill=0.95):
+def segregation_intensity(c, fill=None, cell=None, min_fill=MIN_SAMPLE_FILL):
     """Segregation intensity I = sigma^2 / (c_mean (1 - c_mean)), eq. (25)-(28).
 
     The samples are the qualified sampling cells of :func:`sample_means`; sigma^2 is their
@@ -472,7 +475,7 @@ class ArrayRecorder:
         Least material fraction of a qualified sampling cell.
     """
 
-    def __init__(self, shape, factors=None, min_fill=0.95):
+    def __init__(self, shape, factors=None, min_fill=MIN_SAMPLE_FILL):
         self.ndim = len(shape)
         self.min_fill = _check_min_fill(min_fill)
         self.factors = None if factors is None else tuple(int(k) for k in factors)
@@ -510,7 +513,7 @@ class ArrayRecorder:
         frac = den / float(np.prod(self.factors))
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = num / np.where(den > 0, den, np.nan)
-        return np.where(frac >= self.min_fill - 1e-12, mean, np.nan)
+        return np.where(frac >= self.min_fill - _MIN_FILL_ALLOWANCE, mean, np.nan)
 
     def intensity(self, samples):
         """:func:`intensity_of_samples` of the sample concentrations ``samples``."""
@@ -529,7 +532,7 @@ def lacey_index(
     d=None,
     ndim=None,
     packing=0.6,
-    min_fill=0.95,
+    min_fill=MIN_SAMPLE_FILL,
 ):
     """Lacey mixing index M = (sigma0^2 - sigma^2) / (sigma0^2 - sigmaR^2).
 

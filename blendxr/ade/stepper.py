@@ -419,7 +419,8 @@ def _resolve_flow(flow, scene):
     from ..io import open_flow
 
     if isinstance(flow, str | os.PathLike):
-        small = os.path.getsize(flow) <= SMALL_FLOW_BYTES if os.path.isfile(flow) else False
+        # by the file's size (compressed variables may take more in memory)
+        small = os.path.isfile(flow) and os.path.getsize(flow) <= SMALL_FLOW_BYTES
         flow = open_flow(flow, chunks=None if small else "phase")
     elif isinstance(flow, xr.Dataset):
         flow = validate(_read_if_small(conform_flow(flow)))
@@ -491,7 +492,11 @@ class _Run:
         # a stored-phase interval a stop left unfinished: (start, end, steps done)
         self.interval: tuple[float, float, int] | None = None
         self.stops = StopRules()  # max_steps and wall_time, set by the caller
-        self.sampling_cell = self._sampling_cell()
+        # sampling cells: their width in grid cells (None: none) and in metres
+        self.sampling_cells = self._sampling_cells()
+        self.sampling_cell = (
+            None if self.sampling_cells is None else self.sampling_cells * self.grid.spacing[0]
+        )
         self.recorder = self._recorder()
         self.mean_c = None  # the mean of c, from the first record (it is conserved)
 
@@ -549,7 +554,8 @@ class _Run:
         a, b, w = self.reader.bracket(self._phase_position(self.t))
         return a.fill + w * (b.fill - a.fill)
 
-    def _sampling_cell(self):
+    def _sampling_cells(self) -> int | None:
+        """Grid cells across a sampling cell (None: the ADE cells are not cubes)."""
         cell = self.settings.sampling_cell
         if cell is None:
             cell = 5 * self.settings.d
@@ -562,18 +568,14 @@ class _Run:
         h = self.grid.spacing
         if max(h) - min(h) > 1e-9 * max(h):
             return None  # anisotropic ADE cells: sampling cells cannot be whole cubes
-        n = max(1, round(cell / h[0]))
-        return n * h[0]
+        return max(1, round(cell / h[0]))
 
     def _recorder(self) -> metrics.ArrayRecorder:
         """The records' metrics on this grid's arrays, with its sampling cells (none when
         a sampling cell does not fit the grid)."""
-        factors = None
-        if self.sampling_cell is not None:
-            h = self.grid.spacing[0]
-            k = max(1, round(self.sampling_cell / h))
-            if all(k <= n for n in self.grid.shape):
-                factors = (k,) * self.ndim
+        k = self.sampling_cells
+        fits = k is not None and all(k <= n for n in self.grid.shape)
+        factors = (k,) * self.ndim if fits else None
         return metrics.ArrayRecorder(self.grid.shape, factors)
 
     def record(self) -> None:
