@@ -365,13 +365,13 @@ def test_spin_up_courant_holds_until_revolution_1_ends_and_only_when_it_is_spin_
 def _by_revolution(scene, revolutions):
     """Run ``scene`` stopping at the end of every revolution; the run and, for each
     revolution, a copy of what the last phase averager held then (volume, momentum,
-    samples)."""
+    samples), the parts summed."""
     sim = FlowSimulation(scene)
     held = {}
     for r in range(1, revolutions + 1):
         sim.run(until=sim.settings.settle_time + r * sim.period, progress=False)
         last = sim.last
-        held[r] = (last.vol.sum(axis=0).copy(), last.mom.sum(axis=0).copy(), last.samples.copy())
+        held[r] = (last.vol.sum(axis=1).copy(), last.mom.sum(axis=1).copy(), last.samples.copy())
     return sim, held
 
 

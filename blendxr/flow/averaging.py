@@ -137,8 +137,9 @@ class PhaseAverager:
             inside = inside[..., shape[2] // 2 :]
         self.inside = np.ascontiguousarray(inside)
         parts = 2 if halves else 1
-        self.vol = np.zeros((parts, phases, *self.shape))
-        self.mom = np.zeros((parts, phases, *self.shape, self.ndim))
+        # one contiguous block per phase bin: the deposit's parts are adjacent in it
+        self.vol = np.zeros((phases, parts, *self.shape))
+        self.mom = np.zeros((phases, parts, *self.shape, self.ndim))
         self.samples = np.zeros(phases, np.int64)
 
     @property
@@ -150,7 +151,7 @@ class PhaseAverager:
 
     def add(self, k: int, x: np.ndarray, v: np.ndarray, vol: np.ndarray) -> None:
         # the halves deposit in parallel, each into its own accumulator
-        out = (self.vol[:, k], self.mom[:, k])
+        out = (self.vol[k], self.mom[k])
         if self.ndim == 3:
             mpm.deposit_parts_3d(x, v, vol, self.origin, 1.0 / self.h, self.inside,
                                  self.mirror, *out)  # fmt: skip
@@ -160,12 +161,12 @@ class PhaseAverager:
 
     def take(self, other: PhaseAverager) -> None:
         """Hold ``other``'s averages (its halves summed when this one has none)."""
-        if self.vol.shape[0] == other.vol.shape[0]:
+        if self.vol.shape[1] == other.vol.shape[1]:
             self.vol[...] = other.vol
             self.mom[...] = other.mom
         else:
-            self.vol[0] = other.vol.sum(axis=0)
-            self.mom[0] = other.mom.sum(axis=0)
+            self.vol[:, 0] = other.vol.sum(axis=1)
+            self.mom[:, 0] = other.mom.sum(axis=1)
         self.samples[...] = other.samples
 
     def clear(self) -> None:
@@ -179,11 +180,12 @@ class PhaseAverager:
 
     def fields(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(fill, velocity (n, ..., d), raw fill before clipping) of every bin."""
-        return self._fields(self.vol.sum(axis=0), self.mom.sum(axis=0))
+        return self._fields(self.vol.sum(axis=1), self.mom.sum(axis=1))
 
     def half_fields(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """:meth:`fields` of each half of the particles (each fill about half the total)."""
-        return [self._fields(2.0 * v, 2.0 * m) for v, m in zip(self.vol, self.mom, strict=True)]
+        parts = range(self.vol.shape[1])
+        return [self._fields(2.0 * self.vol[:, q], 2.0 * self.mom[:, q]) for q in parts]
 
     def _fields(self, vol, mom):
         if self.mirror:
@@ -203,11 +205,16 @@ class PhaseAverager:
         return np.clip(raw, 0.0, 1.0), vel, raw
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        return {f"{prefix}_vol": self.vol, f"{prefix}_mom": self.mom, f"{prefix}_n": self.samples}
+        # checkpoints hold the accumulators part first, as they always have
+        return {
+            f"{prefix}_vol": np.moveaxis(self.vol, 1, 0),
+            f"{prefix}_mom": np.moveaxis(self.mom, 1, 0),
+            f"{prefix}_n": self.samples,
+        }
 
     def load(self, prefix: str, arrays: dict) -> None:
-        self.vol[...] = arrays[f"{prefix}_vol"]
-        self.mom[...] = arrays[f"{prefix}_mom"]
+        self.vol[...] = np.moveaxis(arrays[f"{prefix}_vol"], 0, 1)
+        self.mom[...] = np.moveaxis(arrays[f"{prefix}_mom"], 0, 1)
         self.samples[...] = arrays[f"{prefix}_n"]
 
 

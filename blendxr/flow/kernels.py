@@ -114,6 +114,8 @@ GRID_MASS_TINY = 1e-250
 # Divisions are guarded, so the NumPy error model (no exception path) changes no result.
 _JIT = {"parallel": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _JIT_SERIAL = {"cache": True, "fastmath": False, "error_model": "numpy"}
+# helpers inlined at numba-IR level into their caller's loop
+_JIT_INLINE = {"cache": True, "fastmath": False, "error_model": "numpy", "inline": "always"}
 
 # P2G and G2P run their prange over chunks of particles and call serial helpers per
 # chunk: a small parallel loop body compiles much faster than a large one.
@@ -1411,11 +1413,19 @@ def deposit_parts_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol
         )
 
 
-@njit(**_JIT_SERIAL)
+# The deposit's loops are inlined into the particle loop (a call that passes arrays is
+# not inlined by LLVM and costs more than the particle's work) and take the accumulators
+# C-contiguous (the phase averager keeps one block per phase bin and part). Particles
+# whose stencil lies on the grid above the mirror plane (most) take the first path; those
+# within reach of the mirror plane the second; the rest (at the grid's sides) the general
+# one. Each path sums and multiplies in the general loop's order, so all give its bits.
+
+
+@njit(**_JIT_INLINE)
 def _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, acc_mom):
     """One particle's deposit when its whole stencil lies on the grid above the mirror
     plane: the weights of the inside cells summed and added in place, without gathering
-    them (the general loop's sums and products in its order, so the same bits)."""
+    them."""
     total = 0.0
     for a in range(3):
         for b in range(3):
@@ -1441,17 +1451,75 @@ def _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, 
                     acc_mom[i, j, k, 2] += wv * v2
 
 
+@njit(**_JIT_INLINE)
+def _deposit_folded_3d(bi, bj, ks, sz, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, acc_mom):
+    """As :func:`_deposit_block_3d` for a stencil on the grid in x and y whose z cells are
+    ``ks`` (-1: off the grid) with z signs ``sz`` (-1: the image of a cell below the
+    mirror plane, whose z momentum is reversed)."""
+    total = 0.0
+    for a in range(3):
+        for b in range(3):
+            wab = wx[a] * wy[b]
+            for c in range(3):
+                if ks[c] >= 0 and inside[bi + a, bj + b, ks[c]] != 0:
+                    total += wab * wz[c]
+    if total <= 0.0:
+        return
+    scale = vol / total
+    for a in range(3):
+        i = bi + a
+        for b in range(3):
+            j = bj + b
+            wab = wx[a] * wy[b]
+            for c in range(3):
+                k = ks[c]
+                if k >= 0 and inside[i, j, k] != 0:
+                    wv = scale * (wab * wz[c])
+                    acc_vol[i, j, k] += wv
+                    acc_mom[i, j, k, 0] += wv * v0
+                    acc_mom[i, j, k, 1] += wv * v1
+                    acc_mom[i, j, k, 2] += wv * sz[c] * v2
+
+
+@njit(**_JIT_INLINE)
+def _deposit_edge_3d(bi, bj, bk, wx, wy, wz, vol, v0, v1, v2, inside, mirror_z, acc_vol,
+                     acc_mom, w, sign, cell):  # fmt: skip
+    """The general deposit: the stencil's cells on the grid and inside gathered first."""
+    mx, my, mz = acc_vol.shape
+    n = 0
+    total = 0.0
+    for a in range(3):
+        i = bi + a
+        for b in range(3):
+            j = bj + b
+            if not (0 <= i < mx and 0 <= j < my):
+                continue
+            for c in range(3):
+                k, s = _folded(bk + c, mz, mirror_z)
+                if k >= 0 and inside[i, j, k] != 0:
+                    w[n] = wx[a] * wy[b] * wz[c]
+                    sign[n] = s
+                    cell[n, 0], cell[n, 1], cell[n, 2] = i, j, k
+                    total += w[n]
+                    n += 1
+    if total <= 0.0:
+        return
+    scale = vol / total
+    for m in range(n):
+        i, j, k = cell[m, 0], cell[m, 1], cell[m, 2]
+        wv = scale * w[m]
+        acc_vol[i, j, k] += wv
+        acc_mom[i, j, k, 0] += wv * v0
+        acc_mom[i, j, k, 1] += wv * v1
+        acc_mom[i, j, k, 2] += wv * sign[m] * v2
+
+
 @njit(**_JIT_SERIAL)
 def _deposit_3d(x, v, vol, first, stride, origin_out, inv_h_out, inside, mirror_z, acc_vol,
                 acc_mom):  # fmt: skip
     """The loop of :func:`deposit_3d` over particles first, first + stride, ..."""
     mx, my, mz = acc_vol.shape
-    wx = np.empty(3)
-    wy = np.empty(3)
-    wz = np.empty(3)
-    ks = np.empty(3, np.int64)
-    sz = np.empty(3)
-    # the stencil's cells inside, gathered once: weight, z sign and (i, j, k) of each
+    # the general path's gathered cells: weight, z sign and (i, j, k) of each
     w = np.empty(27)
     sign = np.empty(27)
     cell = np.empty((27, 3), np.int64)
@@ -1461,41 +1529,26 @@ def _deposit_3d(x, v, vol, first, stride, origin_out, inv_h_out, inside, mirror_
         fz = (x[p, 2] - origin_out[2]) * inv_h_out
         if not (-1.0 < fx < mx + 1.0 and -1.0 < fy < my + 1.0 and -1.0 < fz < mz + 1.0):
             continue
-        bi, wx[0], wx[1], wx[2] = _centre_stencil(fx)
-        bj, wy[0], wy[1], wy[2] = _centre_stencil(fy)
-        bk, wz[0], wz[1], wz[2] = _centre_stencil(fz)
-        if 0 <= bi and bi + 3 <= mx and 0 <= bj and bj + 3 <= my and 0 <= bk and bk + 3 <= mz:
-            _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol[p], v[p, 0], v[p, 1], v[p, 2],
-                              inside, acc_vol, acc_mom)  # fmt: skip
-            continue
-        for c in range(3):
-            ks[c], sz[c] = _folded(bk + c, mz, mirror_z)
-        n = 0
-        total = 0.0
-        for a in range(3):
-            i = bi + a
-            for b in range(3):
-                j = bj + b
-                if not (0 <= i < mx and 0 <= j < my):
-                    continue
-                for c in range(3):
-                    k = ks[c]
-                    if k >= 0 and inside[i, j, k] != 0:
-                        w[n] = wx[a] * wy[b] * wz[c]
-                        sign[n] = sz[c]
-                        cell[n, 0], cell[n, 1], cell[n, 2] = i, j, k
-                        total += w[n]
-                        n += 1
-        if total <= 0.0:
-            continue
-        scale = vol[p] / total
-        for m in range(n):
-            i, j, k = cell[m, 0], cell[m, 1], cell[m, 2]
-            wv = scale * w[m]
-            acc_vol[i, j, k] += wv
-            acc_mom[i, j, k, 0] += wv * v[p, 0]
-            acc_mom[i, j, k, 1] += wv * v[p, 1]
-            acc_mom[i, j, k, 2] += wv * sign[m] * v[p, 2]
+        bi, wx0, wx1, wx2 = _centre_stencil(fx)
+        bj, wy0, wy1, wy2 = _centre_stencil(fy)
+        bk, wz0, wz1, wz2 = _centre_stencil(fz)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        v0, v1, v2 = v[p, 0], v[p, 1], v[p, 2]
+        in_xy = 0 <= bi and bi + 3 <= mx and 0 <= bj and bj + 3 <= my
+        if in_xy and 0 <= bk and bk + 3 <= mz:
+            _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol[p], v0, v1, v2, inside, acc_vol,
+                              acc_mom)  # fmt: skip
+        elif in_xy and bk + 3 <= mz:
+            k0, s0 = _folded(bk, mz, mirror_z)
+            k1, s1 = _folded(bk + 1, mz, mirror_z)
+            k2, s2 = _folded(bk + 2, mz, mirror_z)
+            _deposit_folded_3d(bi, bj, (k0, k1, k2), (s0, s1, s2), wx, wy, wz, vol[p], v0, v1,
+                               v2, inside, acc_vol, acc_mom)  # fmt: skip
+        else:
+            _deposit_edge_3d(bi, bj, bk, wx, wy, wz, vol[p], v0, v1, v2, inside, mirror_z,
+                             acc_vol, acc_mom, w, sign, cell)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------
