@@ -1416,45 +1416,16 @@ def deposit_parts_3d(x, v, vol, origin_out, inv_h_out, inside, mirror_z, acc_vol
 # The deposit's loops are inlined into the particle loop (a call that passes arrays is
 # not inlined by LLVM and costs more than the particle's work) and take the accumulators
 # C-contiguous (the phase averager keeps one block per phase bin and part). Particles
-# whose stencil lies on the grid above the mirror plane (most) take the first path; those
-# within reach of the mirror plane the second; the rest (at the grid's sides) the general
-# one. Each path sums and multiplies in the general loop's order, so all give its bits.
+# whose stencil lies on the grid in x and y (almost all, the mirror plane's included) add
+# in place; the rest (at the grid's sides) gather their cells first. Both paths sum and
+# multiply in the same order, so they give the same bits.
 
 
 @njit(**_JIT_INLINE)
-def _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, acc_mom):
-    """One particle's deposit when its whole stencil lies on the grid above the mirror
-    plane: the weights of the inside cells summed and added in place, without gathering
-    them."""
-    total = 0.0
-    for a in range(3):
-        for b in range(3):
-            wab = wx[a] * wy[b]
-            for c in range(3):
-                if inside[bi + a, bj + b, bk + c] != 0:
-                    total += wab * wz[c]
-    if total <= 0.0:
-        return
-    scale = vol / total
-    for a in range(3):
-        i = bi + a
-        for b in range(3):
-            j = bj + b
-            wab = wx[a] * wy[b]
-            for c in range(3):
-                k = bk + c
-                if inside[i, j, k] != 0:
-                    wv = scale * (wab * wz[c])
-                    acc_vol[i, j, k] += wv
-                    acc_mom[i, j, k, 0] += wv * v0
-                    acc_mom[i, j, k, 1] += wv * v1
-                    acc_mom[i, j, k, 2] += wv * v2
-
-
-@njit(**_JIT_INLINE)
-def _deposit_folded_3d(bi, bj, ks, sz, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, acc_mom):
-    """As :func:`_deposit_block_3d` for a stencil on the grid in x and y whose z cells are
-    ``ks`` (-1: off the grid) with z signs ``sz`` (-1: the image of a cell below the
+def _deposit_in_xy_3d(bi, bj, ks, sz, wx, wy, wz, vol, v0, v1, v2, inside, acc_vol, acc_mom):
+    """One particle's deposit when its stencil lies on the grid in x and y: the weights of
+    the inside cells summed and added in place, without gathering them. ``ks`` are the z
+    cells (-1: off the grid), ``sz`` their z signs (-1: the image of a cell below the
     mirror plane, whose z momentum is reversed)."""
     total = 0.0
     for a in range(3):
@@ -1536,16 +1507,12 @@ def _deposit_3d(x, v, vol, first, stride, origin_out, inv_h_out, inside, mirror_
         wy = (wy0, wy1, wy2)
         wz = (wz0, wz1, wz2)
         v0, v1, v2 = v[p, 0], v[p, 1], v[p, 2]
-        in_xy = 0 <= bi and bi + 3 <= mx and 0 <= bj and bj + 3 <= my
-        if in_xy and 0 <= bk and bk + 3 <= mz:
-            _deposit_block_3d(bi, bj, bk, wx, wy, wz, vol[p], v0, v1, v2, inside, acc_vol,
-                              acc_mom)  # fmt: skip
-        elif in_xy and bk + 3 <= mz:
+        if 0 <= bi and bi + 3 <= mx and 0 <= bj and bj + 3 <= my and bk + 3 <= mz:
             k0, s0 = _folded(bk, mz, mirror_z)
             k1, s1 = _folded(bk + 1, mz, mirror_z)
             k2, s2 = _folded(bk + 2, mz, mirror_z)
-            _deposit_folded_3d(bi, bj, (k0, k1, k2), (s0, s1, s2), wx, wy, wz, vol[p], v0, v1,
-                               v2, inside, acc_vol, acc_mom)  # fmt: skip
+            _deposit_in_xy_3d(bi, bj, (k0, k1, k2), (s0, s1, s2), wx, wy, wz, vol[p], v0, v1,
+                              v2, inside, acc_vol, acc_mom)  # fmt: skip
         else:
             _deposit_edge_3d(bi, bj, bk, wx, wy, wz, vol[p], v0, v1, v2, inside, mirror_z,
                              acc_vol, acc_mom, w, sign, cell)  # fmt: skip
