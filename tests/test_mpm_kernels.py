@@ -516,6 +516,36 @@ def test_sort_by_cell_matches_twin_and_orders_cells_x_major(d):
     assert sorted(perm) == list(range(len(x)))
 
 
+def test_gather_rows_applies_the_permutation_like_fancy_indexing():
+    rng = np.random.default_rng(12)
+    order = rng.permutation(57)
+    for source in (rng.standard_normal((57, 3, 3)), rng.standard_normal(57)):
+        out = np.full_like(source, np.nan)
+        kernels.gather_rows(source.reshape(57, -1), order, out.reshape(57, -1))
+        np.testing.assert_array_equal(out, source[order])
+
+
+@pytest.mark.parametrize("chunks", [1, 2, 5])
+def test_fastest_particle_is_numpys_argmax_with_non_finite_speeds_first(chunks):
+    rng = np.random.default_rng(13)
+    v = rng.standard_normal((40, 3))
+    starts = kernels.chunk_starts(40, chunks)
+    scratch = np.zeros((chunks, 4))
+
+    def numpy_twin(v):
+        speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+        return int(np.argmax(np.where(np.isfinite(speed), speed, np.inf)))
+
+    v[9] *= 10.0
+    v[31] = v[9]  # a tie of the fastest: the first wins
+    assert kernels.fastest_particle(v, starts, scratch) == numpy_twin(v) == 9
+    for bad in (np.nan, np.inf):
+        w = v.copy()
+        w[[17, 33], 1] = bad
+        assert kernels.fastest_particle(w, starts, scratch) == numpy_twin(w) == 17
+    assert kernels.fastest_particle(v[:0], kernels.chunk_starts(0, chunks), scratch) == -1
+
+
 @DIMS
 def test_particles_in_range_finds_the_first_offender(d):
     x, *_ = _particles(d, n=30, seed=11)

@@ -92,10 +92,12 @@ __all__ = [
     "chunk_starts",
     "deposit_2d",
     "deposit_3d",
+    "fastest_particle",
     "fold_mirror_3d",
     "g2p_2d",
     "g2p_3d",
     "g2p_work",
+    "gather_rows",
     "grid_update_2d",
     "grid_update_3d",
     "p2g_2d",
@@ -320,6 +322,75 @@ def sort_by_cell(x, origin, inv_h, shape):
         perm[first[keys[p]]] = p
         first[keys[p]] += 1
     return perm
+
+
+@njit(**_JIT)
+def fastest_particle(v, starts, scratch):
+    """The first particle of greatest speed, one whose speed is not finite before all.
+
+    Parameters
+    ----------
+    v : ndarray of float64, shape (N, d)
+        Particle velocities [m/s].
+    starts : ndarray of int64, shape (T + 1,)
+        Contiguous particle chunks, one per parallel task (:func:`chunk_starts`).
+    scratch : ndarray of float64, shape (T, >= 2)
+        Per-task workspace: receives each task's key and particle.
+
+    Returns
+    -------
+    int
+        The particle's index (-1 with no particles).
+    """
+    d = v.shape[1]
+    tasks = starts.shape[0] - 1
+    for t in prange(tasks):
+        best = -1.0
+        at = -1
+        for p in range(starts[t], starts[t + 1]):
+            square = 0.0
+            for a in range(d):
+                square += v[p, a] * v[p, a]
+            if not math.isfinite(square):
+                best = math.inf
+                at = p
+                break
+            if square > best:
+                best = square
+                at = p
+        scratch[t, 0] = best
+        scratch[t, 1] = at
+    best = -1.0
+    at = -1
+    for t in range(tasks):
+        if scratch[t, 0] > best:
+            best = scratch[t, 0]
+            at = int(scratch[t, 1])
+    return at
+
+
+@njit(**_JIT)
+def gather_rows(source, order, out):
+    """``out[i] = source[order[i]]`` row by row, in parallel over the rows.
+
+    Applies a re-sort's permutation (:func:`sort_by_cell`) to one particle array viewed
+    as (N, k) into a preallocated array of the same shape, so that the re-sort allocates
+    nothing (the driver swaps the two, double-buffered).
+
+    Parameters
+    ----------
+    source : ndarray of float64, shape (N, k)
+        The array in its old order (read only).
+    order : ndarray of int64, shape (N,)
+        A permutation of ``range(N)``.
+    out : ndarray of float64, shape (N, k)
+        Receives the rows in the new order; must not share memory with ``source``.
+    """
+    n, k = out.shape
+    for i in prange(n):
+        row = order[i]
+        for j in range(k):
+            out[i, j] = source[row, j]
 
 
 # ---------------------------------------------------------------------------------------

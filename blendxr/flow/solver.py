@@ -306,6 +306,7 @@ class FlowSimulation:
         self.plan = plan_flow(self.scene, self.vessel, s, self.material)
         _warn_of_dilation(s, self.material)
         self.ndim = self.vessel.ndim
+        self._wall = (self.vessel.kind, self.vessel.params)  # the vessel's exact SDF
         direction = np.zeros(self.ndim)
         direction[1] = -1.0
         if gravity_direction is not None:
@@ -522,7 +523,7 @@ class FlowSimulation:
                 p.x, p.v, p.C, p.stress, 0.0, self.starts, g.scratch
             )
         self.projected += project_into_vessel(
-            self.vessel.kind, self.vessel.params, p.x, p.v, WALL_SKIN * g.h, self.starts,
+            *self._wall, p.x, p.v, WALL_SKIN * g.h, self.starts,
             g.scratch, g.node_sdf.reshape(-1), g.origin, g.h, g.shape_array,
         )  # fmt: skip
         self.t += dt
@@ -533,9 +534,9 @@ class FlowSimulation:
 
     def _check_state(self) -> None:
         p = self.particles
-        speed = np.sqrt(np.einsum("ij,ij->i", p.v, p.v))
-        worst = int(np.argmax(np.where(np.isfinite(speed), speed, np.inf)))
-        vmax = float(speed[worst])
+        worst = mpm.fastest_particle(p.v, self.starts, self.grid.scratch)
+        fastest = p.v[max(worst, 0) : worst + 1]
+        vmax = float(np.sqrt(np.einsum("ij,ij->i", fastest, fastest)).max(initial=0.0))
         limit = self.speed_limit()
         if not math.isfinite(vmax) or vmax > limit:
             where = ", ".join(f"{c:.4g}" for c in p.x[worst])

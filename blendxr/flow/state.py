@@ -33,6 +33,7 @@ class Particles:
         self.colour = np.zeros(n)
         self.image_colour = np.zeros(n) if mirror else None
         self.codes = np.zeros(n, np.int8)
+        self._spares: dict[str, np.ndarray] = {}  # permute's second buffers
 
     @property
     def count(self) -> int:
@@ -49,8 +50,22 @@ class Particles:
         return float(self.vol.sum() / self.vol0.sum())
 
     def permute(self, order: np.ndarray) -> None:
+        """Reorder every particle array by ``order`` (a permutation of the particles).
+
+        Each array is gathered into a spare of its shape, which then takes its place,
+        the old array becoming the next spare: double-buffered, so that a re-sort
+        allocates nothing after the first.
+        """
+        spares = self._spares
         for name in self.fields:
-            setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+            current = getattr(self, name)
+            spare = spares.get(name)
+            if spare is None or spare.shape != current.shape:
+                spare = np.empty_like(current)
+            n = current.shape[0]
+            mpm.gather_rows(current.reshape(n, -1), order, spare.reshape(n, -1))
+            setattr(self, name, spare)
+            spares[name] = current
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in self.fields}
