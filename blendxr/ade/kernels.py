@@ -821,6 +821,17 @@ def _movable(sm, vessel, i):
 
 
 @njit(**_JIT_INLINE)
+def _any_support(vessel, g, n):
+    """Whether any of the n cells from flat index g is in the support: a row without is
+    skipped before its m is read (one byte a cell instead of nine, where most of a grid
+    is outside the flow)."""
+    count = 0
+    for k in range(np.uint64(0), np.uint64(n)):
+        count += 1 if vessel[g + k] != 0 else 0
+    return count > 0
+
+
+@njit(**_JIT_INLINE)
 def _ratio(g, p):
     """Zalesak ratio: the share of the harmful antidiffusion ``p`` the slack ``g`` allows."""
     r = max(0.0, min(1.0, g / p))
@@ -830,13 +841,15 @@ def _ratio(g, p):
 @njit(**_JIT_SCALAR)
 def _fv_block(
     sm, sq, dm, dq, scr, v, dif, vessel, n0, n1, n2, lo0, hi0, lo1, hi1,
-    axis, cfl, kdiff, n_diff_sub, width, ring, item,
+    axis, cfl, kdiff, n_diff_sub, width, ring, item, copy_through,
 ):  # fmt: skip
     """One work item of a sweep along ``axis`` (flat arrays of a (n0, n1, n2) grid).
 
     A plain function, not inlined into the parallel loop: numba's parallel passes then
     see a small loop body, which keeps compilation short. ``lo0:hi0`` and ``lo1:hi1`` are
-    the cells of axes 0 and 1 a sweep may update (axis 2: 1 to n2 - 2).
+    the cells of axes 0 and 1 a sweep may update (axis 2: 1 to n2 - 2). Without
+    ``copy_through`` the sweep works in place (``dm`` is ``sm``, ``dq`` is ``sq``): the
+    cells it does not update are already where they belong, and are not touched.
     """
     M, Q, CC, DM, DQ = scr[0], scr[1], scr[2], scr[3], scr[4]
     S, A, R1, R2, R3 = scr[5], scr[6], scr[7], scr[8], scr[9]
@@ -890,6 +903,8 @@ def _fv_block(
     line_hi = -1
     if plane_ok:
         for row in range(n_rows):
+            if not _any_support(vessel, np.uint64(b0 + row * g_row), row_len):
+                continue
             if along:
                 gi = b0 + row * g_row
                 lo = 0
@@ -919,6 +934,8 @@ def _fv_block(
                     line_hi = max(line_hi, hi)
     if first < 0:
         # no material, or outside the updated range: copied through
+        if not copy_through:
+            return
         for row in range(n_rows):
             g = np.uint64(b0 + row * g_row)
             for k in range(np.uint64(0), np.uint64(row_len)):
@@ -940,7 +957,7 @@ def _fv_block(
         pitch = n2
         mask = -1
     else:
-        for row in range(na):
+        for row in range(na if copy_through else 0):
             if w0 <= row < w1:
                 continue
             g = np.uint64(b0 + row * g_row)
@@ -1189,7 +1206,7 @@ def _fv_block(
 @njit(**_JIT)
 def _fv_sweep(
     sm, sq, dm, dq, pool, v, dif, vessel, n0, n1, n2, lo0, hi0, lo1, hi1,
-    axis, cfl, kdiff, n_diff_sub, width, ring, n_workers, fstride,
+    axis, cfl, kdiff, n_diff_sub, width, ring, n_workers, fstride, copy_through,
 ):  # fmt: skip
     """One 1-D sweep: ``n_workers`` threads, each with its scratch, take blocks in turn.
 
@@ -1209,7 +1226,7 @@ def _fv_sweep(
         for item in range(wk, n_items, n_workers):
             _fv_block(
                 sm, sq, dm, dq, scr, v, dif, vessel, n0, n1, n2, lo0, hi0, lo1, hi1,
-                axis, cfl, kdiff, n_diff_sub, width, ring, item,
+                axis, cfl, kdiff, n_diff_sub, width, ring, item, copy_through,
             )  # fmt: skip
 
 
@@ -1249,12 +1266,16 @@ def _flat(a):
     return a.reshape(-1)
 
 
-def _fv_step(src, out, work, sweeps, dt, n_diff_sub):
+def _fv_step(src, out, work, sweeps, dt, n_diff_sub, in_place):
     """Run the sweeps ``(axis, shape3, valid ranges, velocity, diffusivity, h)``."""
     w = _flat(work).reshape(FV_WORK_FIELDS, -1)
-    # (m, q) in -> ... -> out, through fields 0 and 1 of work; fields 2.. are the pool
+    # (m, q) in -> ... -> out, through fields 0 and 1 of work; fields 2.. are the pool.
+    # In place every sweep reads and writes (m, q): each block of lines is read into its
+    # thread's scratch before any of it is written back, and blocks share no cells
     n = len(sweeps)
     stops = [src] + [(w[0], w[1]) if (n - 1 - s) % 2 == 0 else out for s in range(1, n)] + [out]
+    if in_place:
+        stops = [src] * (n + 1)
     pool = w[2:].reshape(-1)
     for s, (axis, (n0, n1, n2), ranges, v, dif, vessel, h) in enumerate(sweeps):
         width, ring, n_workers, fstride = _fv_plan(n0, n1, n2, axis, n_diff_sub)
@@ -1263,8 +1284,20 @@ def _fv_step(src, out, work, sweeps, dt, n_diff_sub):
         kdiff = dt / max(n_diff_sub, 1) / (h * h)
         _fv_sweep(
             *stops[s], *stops[s + 1], scratch, v, dif, vessel, n0, n1, n2, *ranges,
-            axis, dt / h, kdiff, n_diff_sub, width, ring, n_workers, fstride,
+            axis, dt / h, kdiff, n_diff_sub, width, ring, n_workers, fstride, not in_place,
         )  # fmt: skip
+
+
+def _in_place(m, q, m_out, q_out):
+    """Whether a step writes its input (``m_out`` is ``m`` and ``q_out`` is ``q``)."""
+    same = m_out is m, q_out is q
+    if same[0] != same[1]:
+        raise ValueError("m and q are updated in place together or not at all")
+    if not same[0] and any(np.may_share_memory(a, b) for a in (m, q) for b in (m_out, q_out)):
+        raise ValueError(
+            "the output arrays overlap the input: pass the same arrays to update in place"
+        )
+    return same[0]
 
 
 def fv_step_3d(
@@ -1316,9 +1349,12 @@ def fv_step_3d(
     Parameters
     ----------
     m, q : ndarray, shape (nx, ny, nz)
-        Material volume fraction and species content ``m c`` at step n (not modified).
+        Material volume fraction and species content ``m c`` at step n (not modified,
+        unless the step is in place).
     m_out, q_out : ndarray, shape (nx, ny, nz)
-        Receive m and q at step n + 1.
+        Receive m and q at step n + 1: other arrays, or ``m`` and ``q`` themselves (in
+        place: the cells no sweep updates are then never touched, which saves copying
+        them three times a step).
     work : ndarray, shape (FV_WORK_FIELDS, nx, ny, nz)
         Scratch array from :func:`fv_workspace`.
     vx, vy, vz : ndarray, shape (nx, ny, nz)
@@ -1347,7 +1383,10 @@ def fv_step_3d(
     ]
     if reverse:
         sweeps.reverse()
-    _fv_step((_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub)
+    _fv_step(
+        (_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub,
+        _in_place(m, q, m_out, q_out),
+    )  # fmt: skip
 
 
 def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, reverse, n_diff_sub):
@@ -1359,9 +1398,10 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
     Parameters
     ----------
     m, q : ndarray, shape (nx, ny)
-        Material volume fraction and species content ``m c`` at step n (not modified).
+        Material volume fraction and species content ``m c`` at step n (not modified,
+        unless the step is in place).
     m_out, q_out : ndarray, shape (nx, ny)
-        Receive m and q at step n + 1.
+        Receive m and q at step n + 1, or are ``m`` and ``q`` themselves (in place).
     work : ndarray, shape (FV_WORK_FIELDS, nx, ny)
         Scratch array from :func:`fv_workspace`.
     vx, vy : ndarray, shape (nx, ny)
@@ -1386,7 +1426,10 @@ def fv_step_2d(m, q, m_out, q_out, work, vx, vy, dxx, dyy, vessel, dt, dx, dy, r
     ]
     if reverse:
         sweeps.reverse()
-    _fv_step((_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub)
+    _fv_step(
+        (_flat(m), _flat(q)), (_flat(m_out), _flat(q_out)), work, sweeps, dt, n_diff_sub,
+        _in_place(m, q, m_out, q_out),
+    )  # fmt: skip
 
 
 @njit(**_JIT_INLINE)

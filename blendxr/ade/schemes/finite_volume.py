@@ -1,7 +1,8 @@
 """The conservative bounded finite-volume scheme behind the :class:`Scheme` interface.
 
-State: the material volume fraction m and the species content q = m c, with double
-buffers; dimension-split sweeps whose order alternates every step (Strang-like
+State: the material volume fraction m and the species content q = m c, updated in place
+(each block of lines is buffered in its thread's scratch, so cells away from material
+are never touched); dimension-split sweeps whose order alternates every step (Strang-like
 symmetry over two steps). Material moves only among cells the flow fills (blended fill
 above :data:`SUPPORT_FILL`); no flux crosses the free surface into cells the flow leaves
 empty. Explicit diffusion runs as sub-steps inside each sweep, as many as
@@ -38,8 +39,6 @@ class FiniteVolume(Scheme):
         shape = grid.shape
         self.m = np.zeros(shape)
         self.q = np.zeros(shape)
-        self.m_next = np.zeros(shape)
-        self.q_next = np.zeros(shape)
         self.work = kernels.fv_workspace(shape)
         self.reverse = False
         self.support = vessel.copy()
@@ -96,11 +95,9 @@ class FiniteVolume(Scheme):
 
     def step(self):
         step = kernels.fv_step_3d if self.ndim == 3 else kernels.fv_step_2d
-        step(self.m, self.q, self.m_next, self.q_next, self.work, *self.transport,
+        step(self.m, self.q, self.m, self.q, self.work, *self.transport,
              *self._dif_args, self.support, self._dt, *self.grid.spacing, self.reverse,
              self.n_sub)  # fmt: skip
-        self.m, self.m_next = self.m_next, self.m
-        self.q, self.q_next = self.q_next, self.q
         self.reverse = not self.reverse
 
     def active_cells(self, steps):
