@@ -957,13 +957,14 @@ def _fv_block(
         pitch = n2
         mask = -1
     else:
-        for row in range(na if copy_through else 0):
-            if w0 <= row < w1:
-                continue
-            g = np.uint64(b0 + row * g_row)
-            for k in range(np.uint64(0), np.uint64(row_len)):
-                dm[g + k] = sm[g + k]
-                dq[g + k] = sq[g + k]
+        if copy_through:
+            for row in range(na):
+                if w0 <= row < w1:
+                    continue
+                g = np.uint64(b0 + row * g_row)
+                for k in range(np.uint64(0), np.uint64(row_len)):
+                    dm[g + k] = sm[g + k]
+                    dq[g + k] = sq[g + k]
         n_t = w1 - w0 + n_stages + 1
         pitch = width
         mask = ring - 1
@@ -1273,9 +1274,11 @@ def _fv_step(src, out, work, sweeps, dt, n_diff_sub, in_place):
     # In place every sweep reads and writes (m, q): each block of lines is read into its
     # thread's scratch before any of it is written back, and blocks share no cells
     n = len(sweeps)
-    stops = [src] + [(w[0], w[1]) if (n - 1 - s) % 2 == 0 else out for s in range(1, n)] + [out]
     if in_place:
         stops = [src] * (n + 1)
+    else:
+        middle = [(w[0], w[1]) if (n - 1 - s) % 2 == 0 else out for s in range(1, n)]
+        stops = [src] + middle + [out]
     pool = w[2:].reshape(-1)
     for s, (axis, (n0, n1, n2), ranges, v, dif, vessel, h) in enumerate(sweeps):
         width, ring, n_workers, fstride = _fv_plan(n0, n1, n2, axis, n_diff_sub)

@@ -23,6 +23,7 @@ __all__ = [
     "g2p",
     "grid_update",
     "p2g",
+    "fastest_particle",
     "particles_in_range",
     "poisson_matrix",
     "scatter_volume",
@@ -206,6 +207,15 @@ def sort_by_cell(x, origin, inv_h, shape):
     """Stable permutation ordering particles by (ix, iy[, iz]) cell, x-major."""
     cell = np.clip(np.floor((x - origin) * inv_h), 0, np.array(shape) - 1).astype(np.int64)
     return np.lexsort(cell.T[::-1])
+
+
+def fastest_particle(v):
+    """Index of the first particle of greatest speed, a non-finite speed counting as
+    infinite (-1 with no particles)."""
+    if v.shape[0] == 0:
+        return -1
+    speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+    return int(np.argmax(np.where(np.isfinite(speed), speed, np.inf)))
 
 
 def particles_in_range(x, origin, inv_h, shape):
